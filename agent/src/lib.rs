@@ -1,1 +1,6 @@
-pub fn x() {}
+//! echomap agent library: the scenario simulator (`sim`), plotting (`plot`) and the CLI; the
+//! Channel-SLAM filter, evaluation and the server client join here as they land.
+
+pub mod cli;
+pub mod plot;
+pub mod sim;

@@ -54,7 +54,7 @@ pub fn merge_pair(a: &Component, b: &Component) -> Component {
 /// Overall mean and covariance of a (not necessarily normalized) mixture.
 pub fn moments(components: &[Component]) -> Option<(Vector3<f64>, Matrix3<f64>)> {
     let total: f64 = components.iter().map(|c| c.weight).sum();
-    if components.is_empty() || !(total > 0.0) {
+    if components.is_empty() || total.is_nan() || total <= 0.0 {
         return None;
     }
     let mean = components

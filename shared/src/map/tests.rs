@@ -101,7 +101,8 @@ fn invalid_path(e: ParseError) -> String {
 #[test]
 fn validation_names_the_field_at_fault() {
     use serde_json::json;
-    let cases: Vec<(&str, Box<dyn FnOnce(&mut serde_json::Value)>)> = vec![
+    type Edit = Box<dyn FnOnce(&mut serde_json::Value)>;
+    let cases: Vec<(&str, Edit)> = vec![
         (
             "format",
             Box::new(|v| v["format"] = json!("echomap.map.v0")),

@@ -1,0 +1,209 @@
+//! Command-line interface of `echomap-agent` (kept in the library so tests reach it).
+
+use crate::sim::builtin;
+use crate::sim::simulate::{SimOptions, simulate};
+use crate::sim::{Scenario, SimOutput};
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand};
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "echomap-agent",
+    version,
+    about = "echomap agent: simulate, run Channel-SLAM, evaluate"
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Simulate one track of a scenario: writes log.jsonl and truth.json into --out.
+    Simulate(SimulateArgs),
+    /// The main job for now: simulate the indoor reference track and render the scenario and
+    /// the channel-estimator output into --out (default out/demo).
+    Demo(DemoArgs),
+    /// Draw a scenario (walls, scatterers, transmitter, tracks, virtual transmitters) as PNG or SVG,
+    /// or dump it as a JSON scenario file.
+    Scenario(ScenarioArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ScenarioSource {
+    /// built-in scenario (`indoor`, `urban`) or a path to a JSON scenario file
+    #[arg(long, default_value = "indoor")]
+    pub scenario: String,
+    /// drop angles of arrival: simulate a single-antenna (ToA-only) receiver
+    #[arg(long)]
+    pub toa_only: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct SimulateArgs {
+    #[command(flatten)]
+    pub source: ScenarioSource,
+    /// track of the scenario to walk
+    #[arg(long, default_value = "reference")]
+    pub track: String,
+    /// seed of every random draw (same seed, same output)
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// output directory (created if missing)
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct DemoArgs {
+    /// seed of the simulation
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// output directory
+    #[arg(long, default_value = "out/demo")]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct ScenarioArgs {
+    #[command(flatten)]
+    pub source: ScenarioSource,
+    /// tracks to draw (comma-separated); default: all
+    #[arg(long, value_delimiter = ',')]
+    pub tracks: Vec<String>,
+    /// track whose detectable virtual transmitters are drawn
+    #[arg(long, default_value = "reference")]
+    pub vtx_track: String,
+    /// output file: .png or .svg draws the scenario, .json writes the scenario file
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// Loads a built-in scenario by name or a JSON scenario file.
+pub fn load_scenario(source: &ScenarioSource) -> Result<Scenario> {
+    let mut s = match builtin::builtin(&source.scenario) {
+        Some(s) => s,
+        None => {
+            let path = Path::new(&source.scenario);
+            if !path.exists() {
+                bail!(
+                    "unknown scenario {:?}: not a built-in ({}) and no such file",
+                    source.scenario,
+                    builtin::NAMES.join(", ")
+                );
+            }
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            Scenario::from_json(&text)
+                .with_context(|| format!("in scenario file {}", path.display()))?
+        }
+    };
+    if source.toa_only {
+        s.receiver.aoa = false;
+    }
+    Ok(s)
+}
+
+/// Writes `log.jsonl` and `truth.json` into `dir`.
+pub fn write_sim_output(out: &SimOutput, dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let log_path = dir.join("log.jsonl");
+    let file = std::fs::File::create(&log_path)
+        .with_context(|| format!("creating {}", log_path.display()))?;
+    let mut w = std::io::BufWriter::new(file);
+    out.log
+        .write_to(&mut w)
+        .with_context(|| format!("writing {}", log_path.display()))?;
+    std::io::Write::flush(&mut w)?;
+    let truth_path = dir.join("truth.json");
+    std::fs::write(&truth_path, serde_json::to_string(&out.truth)?)
+        .with_context(|| format!("writing {}", truth_path.display()))?;
+    Ok(())
+}
+
+pub fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Simulate(a) => {
+            let scenario = load_scenario(&a.source)?;
+            let out = simulate(
+                &scenario,
+                &a.track,
+                SimOptions {
+                    seed: a.seed,
+                    toa_only: a.source.toa_only,
+                },
+            )?;
+            write_sim_output(&out, &a.out)?;
+            let comps: usize = out.log.snapshots.iter().map(|s| s.components.len()).sum();
+            println!(
+                "simulated {} / {}: {} snapshots, {:.1} components per snapshot, {} track ids → {}",
+                scenario.name,
+                a.track,
+                out.log.snapshots.len(),
+                comps as f64 / out.log.snapshots.len().max(1) as f64,
+                out.truth.transmitters.len(),
+                a.out.display()
+            );
+            Ok(())
+        }
+        Command::Demo(a) => {
+            let scenario = builtin::indoor();
+            let out = simulate(
+                &scenario,
+                "reference",
+                SimOptions {
+                    seed: a.seed,
+                    toa_only: false,
+                },
+            )?;
+            write_sim_output(&out, &a.out)?;
+            let scenario_png = a.out.join("scenario.png");
+            crate::plot::draw_scenario(
+                &scenario,
+                &["reference".to_string()],
+                "reference",
+                &scenario_png,
+            )?;
+            let comps_png = a.out.join("components.png");
+            let title = format!("indoor / reference, seed {}: detected components", a.seed);
+            crate::plot::draw_components(&out.log, &out.truth, &title, &comps_png)?;
+            let comps: usize = out.log.snapshots.iter().map(|s| s.components.len()).sum();
+            println!(
+                "indoor / reference (seed {}): {} snapshots, {:.1} components per snapshot, {} track ids",
+                a.seed,
+                out.log.snapshots.len(),
+                comps as f64 / out.log.snapshots.len().max(1) as f64,
+                out.truth.transmitters.len()
+            );
+            for f in ["log.jsonl", "truth.json", "scenario.png", "components.png"] {
+                println!("  wrote {}", a.out.join(f).display());
+            }
+            Ok(())
+        }
+        Command::Scenario(a) => {
+            let scenario = load_scenario(&a.source)?;
+            let ext = a
+                .out
+                .extension()
+                .and_then(|e| e.to_str())
+                .unwrap_or("")
+                .to_ascii_lowercase();
+            match ext.as_str() {
+                "json" => {
+                    std::fs::write(&a.out, serde_json::to_string_pretty(&scenario)?)
+                        .with_context(|| format!("writing {}", a.out.display()))?;
+                }
+                "png" | "svg" => {
+                    crate::plot::draw_scenario(&scenario, &a.tracks, &a.vtx_track, &a.out)?
+                }
+                _ => bail!(
+                    "--out must end in .png, .svg or .json, got {}",
+                    a.out.display()
+                ),
+            }
+            println!("wrote {}", a.out.display());
+            Ok(())
+        }
+    }
+}

@@ -1,0 +1,358 @@
+//! Simulation of one user track: geometry → channel-estimator output → measurement log.
+//!
+//! Per snapshot and per traced path:
+//! - received power `P = P_tx − FSPL(L, f_c) − Σ interaction losses + F` with free-space loss
+//!   `FSPL = 20·log10(4πL/λ)` over the whole path length `L` and slow fading `F`, an AR(1)
+//!   process in travelled distance (std `fading_std_db`, correlation `fading_correlation_m`);
+//! - per-sample SNR against thermal noise `−174 dBm/Hz + 10·log10(B) + NF`;
+//! - resolution: two paths closer than `c/B` in distance *and* (with AoA) closer than the
+//!   array's angular resolution are one component; only the stronger is reported;
+//! - detection: SNR ≥ `detection_threshold_db`;
+//! - noise: Gaussian, with CRLB-shaped standard deviations for an estimator integrating
+//!   `N` samples at SNR γ (Kay, Fundamentals of Statistical Signal Processing I, §3):
+//!   `σ_d = √(σ_d,floor² + (c / (2π·β·√(2Nγ)))²)`, `β = B/√12` the rms bandwidth of a flat
+//!   spectrum; `σ_θ = √(σ_θ,floor² + 1/(2Nγ·Σₘ(k·aₘ)²))` for a square array with
+//!   half-wavelength spacing (`Σₘ(k·aₘ)²` is isotropic for a square grid). The floors stand
+//!   for model mismatch and calibration, which dominate at high SNR in practice.
+//! - tracks: a component keeps its track id while it is reported in consecutive snapshots;
+//!   once it is missing (blocked, faded, unresolved, or dropped at random with rate
+//!   `track_loss_rate_hz`) and comes back it gets a new id — as KEST does (seed 002 §5).
+//!
+//! The gyroscope reports the true mean heading rate over each interval plus bias and white
+//! noise. Everything is reported in the user's local frame (origin at the start, +x along the
+//! initial heading). Randomness: one seed, independent ChaCha streams for fading, track
+//! losses, measurement noise and gyro, so changing one noise source leaves the others alone.
+
+use super::SPEED_OF_LIGHT;
+use super::raytrace::{Geometry, Interaction, Path, sequences, trace_all};
+use super::scenario::{Scenario, ScenarioError, Track};
+use super::trajectory::Trajectory;
+use echomap_shared::Transform2;
+use echomap_shared::log::{
+    GroundTruth, LOG_FORMAT, LogHeader, Measurement, MeasurementLog, Snapshot, TRUTH_FORMAT,
+    TruePose, TrueTransmitter,
+};
+use echomap_shared::wrap_angle;
+use nalgebra::{Isometry2, Point2};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+
+/// The simulator's output: the log an agent consumes and the ground truth beside it.
+#[derive(Debug, Clone)]
+pub struct SimOutput {
+    pub log: MeasurementLog,
+    pub truth: GroundTruth,
+}
+
+/// Options that are not part of the scenario.
+#[derive(Debug, Clone, Copy)]
+pub struct SimOptions {
+    pub seed: u64,
+    /// force ToA-only output even if the scenario's receiver has an array
+    pub toa_only: bool,
+}
+
+/// Stream ids of the independent random sources.
+const STREAM_FADING: u64 = 1;
+const STREAM_LOSS: u64 = 2;
+const STREAM_NOISE: u64 = 3;
+const STREAM_GYRO: u64 = 4;
+
+fn rng(seed: u64, stream: u64) -> ChaCha8Rng {
+    let mut r = ChaCha8Rng::seed_from_u64(seed);
+    r.set_stream(stream);
+    r
+}
+
+fn normal(r: &mut ChaCha8Rng) -> f64 {
+    r.sample(StandardNormal)
+}
+
+impl Scenario {
+    pub fn geometry(&self) -> Geometry {
+        let p = |a: [f64; 2]| Point2::new(a[0], a[1]);
+        Geometry {
+            tx: p(self.transmitter.position),
+            clock_offset_m: self.transmitter.clock_offset_m,
+            walls: self.walls.iter().map(|w| [p(w.from), p(w.to)]).collect(),
+            scatterers: self.scatterers.iter().map(|s| p(s.position)).collect(),
+        }
+    }
+
+    /// Noise power over the bandwidth (dBm).
+    pub fn noise_power_dbm(&self) -> f64 {
+        -174.0 + 10.0 * self.bandwidth_hz.log10() + self.receiver.noise_figure_db
+    }
+
+    /// Received power (dBm) of a path, before fading.
+    pub fn path_power_dbm(&self, path: &Path) -> f64 {
+        let lambda = self.wavelength_m();
+        let fspl = 20.0 * (4.0 * std::f64::consts::PI * path.length_m.max(lambda) / lambda).log10();
+        let losses: f64 = path
+            .interactions
+            .iter()
+            .map(|i| match *i {
+                Interaction::Reflect(w) => self.walls[w].reflection_loss_db,
+                Interaction::Scatter(s) => self.scatterers[s].scattering_loss_db,
+            })
+            .sum();
+        self.transmitter.power_dbm - fspl - losses
+    }
+
+    /// Standard deviations (distance m, AoA rad) of the estimates at per-sample SNR `snr_db`.
+    pub fn noise_std(&self, snr_db: f64) -> (f64, f64) {
+        let e = &self.estimator;
+        let gamma = 10f64.powf(snr_db / 10.0) * e.integration_samples;
+        let beta = self.bandwidth_hz / 12f64.sqrt();
+        let crlb_d = SPEED_OF_LIGHT / (2.0 * std::f64::consts::PI * beta * (2.0 * gamma).sqrt());
+        let side = f64::from(self.receiver.array_elements).sqrt();
+        // Σ over a side×side grid of (π·offset)² per axis, offsets in half-wavelengths.
+        let axis: f64 = (0..side as usize)
+            .map(|i| (i as f64 - (side - 1.0) / 2.0).powi(2))
+            .sum();
+        let aperture = std::f64::consts::PI.powi(2) * side * axis;
+        let crlb_a = if aperture > 0.0 {
+            (1.0 / (2.0 * gamma * aperture)).sqrt()
+        } else {
+            f64::INFINITY
+        };
+        (
+            e.distance_floor_m.hypot(crlb_d),
+            e.aoa_floor_rad.hypot(crlb_a),
+        )
+    }
+}
+
+/// One resolved, detected component before noise.
+struct Candidate {
+    seq: usize,
+    path: Path,
+    distance_m: f64,
+    aoa_rad: f64,
+    snr_db: f64,
+}
+
+/// Simulates `track_name` of `scenario`.
+pub fn simulate(
+    scenario: &Scenario,
+    track_name: &str,
+    opts: SimOptions,
+) -> Result<SimOutput, ScenarioError> {
+    scenario.validate()?;
+    let track: &Track = scenario.track(track_name)?;
+    let geo = scenario.geometry();
+    let seqs = sequences(
+        geo.walls.len(),
+        geo.scatterers.len(),
+        scenario.estimator.max_order,
+    );
+    let traj = Trajectory::new(&track.waypoints, track.turn_radius_m);
+    let dt = 1.0 / scenario.snapshot_rate_hz;
+    let step = track.speed_mps * dt;
+    let n_snap = (traj.length_m() / step).floor() as usize + 1;
+    let aoa = scenario.receiver.aoa && !opts.toa_only;
+    let resolution_d = SPEED_OF_LIGHT / scenario.bandwidth_hz;
+    let resolution_a = scenario.angular_resolution_rad();
+    let noise_dbm = scenario.noise_power_dbm();
+    let est = &scenario.estimator;
+    let loss_prob = (est.track_loss_rate_hz * dt).min(1.0);
+
+    let (p0, h0) = traj.pose_at(0.0);
+    let world_from_local = Isometry2::new(p0.coords, h0);
+    let local_from_world = world_from_local.inverse();
+
+    let mut fading_rng = rng(opts.seed, STREAM_FADING);
+    let mut loss_rng = rng(opts.seed, STREAM_LOSS);
+    let mut noise_rng = rng(opts.seed, STREAM_NOISE);
+    let mut gyro_rng = rng(opts.seed, STREAM_GYRO);
+
+    let mut fading: Vec<Option<f64>> = vec![None; seqs.len()];
+    let mut current_track: Vec<Option<u64>> = vec![None; seqs.len()];
+    let mut next_track: u64 = 1;
+    let mut true_tx = Vec::new();
+    let mut snapshots = Vec::with_capacity(n_snap);
+    let mut poses = Vec::with_capacity(n_snap);
+    let mut prev_heading = h0;
+    let rho = (-step / est.fading_correlation_m).exp();
+
+    for k in 0..n_snap {
+        let s = k as f64 * step;
+        let (pos, heading) = traj.pose_at(s);
+        let t = k as f64 * dt;
+        let true_rate = if k == 0 {
+            0.0
+        } else {
+            wrap_angle(heading - prev_heading) / dt
+        };
+        prev_heading = heading;
+        let gyro = true_rate
+            + scenario.gyro.bias_rad_s
+            + scenario.gyro.noise_std_rad_s * normal(&mut gyro_rng);
+
+        // Trace, fade, and collect candidates in sequence order (deterministic).
+        let paths = trace_all(&geo, &seqs, &pos);
+        let mut valid = vec![false; seqs.len()];
+        let mut cands = Vec::with_capacity(paths.len());
+        for (seq, path) in paths {
+            valid[seq] = true;
+            let f = match fading[seq] {
+                Some(prev) => {
+                    rho * prev
+                        + (1.0 - rho * rho).sqrt() * est.fading_std_db * normal(&mut fading_rng)
+                }
+                None => est.fading_std_db * normal(&mut fading_rng),
+            };
+            fading[seq] = Some(f);
+            let snr_db = scenario.path_power_dbm(&path) + f - noise_dbm;
+            let dir = path.points[path.points.len() - 2] - pos;
+            let aoa_rad = wrap_angle(dir.y.atan2(dir.x) - heading);
+            let distance_m = path.distance_m(geo.clock_offset_m);
+            cands.push(Candidate {
+                seq,
+                path,
+                distance_m,
+                aoa_rad,
+                snr_db,
+            });
+        }
+        for (seq, v) in valid.iter().enumerate() {
+            if !v {
+                fading[seq] = None;
+            }
+        }
+        // Resolution: components already tracked first (the estimator's tracking loop holds
+        // them), then the strongest; a path too close to a kept one is absorbed by it.
+        let tracked = |c: &Candidate| current_track[c.seq].is_some();
+        cands.sort_by(|a, b| {
+            tracked(b)
+                .cmp(&tracked(a))
+                .then(b.snr_db.total_cmp(&a.snr_db))
+                .then(a.seq.cmp(&b.seq))
+        });
+        let mut kept: Vec<Candidate> = Vec::new();
+        for c in cands {
+            let threshold = est.detection_threshold_db
+                - if tracked(&c) {
+                    est.tracking_hysteresis_db
+                } else {
+                    0.0
+                };
+            if c.snr_db < threshold {
+                continue;
+            }
+            let merged = kept.iter().any(|k| {
+                (k.distance_m - c.distance_m).abs() < resolution_d
+                    && (!aoa || wrap_angle(k.aoa_rad - c.aoa_rad).abs() < resolution_a)
+            });
+            if !merged {
+                kept.push(c);
+            }
+        }
+        kept.sort_by_key(|c| c.seq);
+        // Spurious track losses, then track-id bookkeeping.
+        let mut reported = vec![false; seqs.len()];
+        let mut components = Vec::with_capacity(kept.len());
+        for c in kept {
+            let lost = current_track[c.seq].is_some() && loss_rng.random::<f64>() < loss_prob;
+            if lost {
+                continue;
+            }
+            reported[c.seq] = true;
+            let id = *current_track[c.seq].get_or_insert_with(|| {
+                let id = next_track;
+                next_track += 1;
+                let v = local_from_world * c.path.vtx;
+                true_tx.push(TrueTransmitter {
+                    track: id,
+                    state: [v.x, v.y, c.path.b_m],
+                    kind: c.path.kind().to_string(),
+                    path: c.path.label(),
+                });
+                id
+            });
+            let (sd, sa) = scenario.noise_std(c.snr_db);
+            let d = (c.distance_m + sd * normal(&mut noise_rng)).max(1e-3);
+            let a = wrap_angle(c.aoa_rad + sa * normal(&mut noise_rng));
+            components.push(Measurement {
+                track: id,
+                d,
+                aoa: aoa.then_some(a),
+                snr_db: c.snr_db,
+            });
+        }
+        for (seq, r) in reported.iter().enumerate() {
+            if !r {
+                current_track[seq] = None;
+            }
+        }
+        components.sort_by_key(|m| m.track);
+        snapshots.push(Snapshot {
+            t,
+            gyro,
+            speed: None,
+            components,
+        });
+        let local = local_from_world * pos;
+        poses.push(TruePose {
+            t,
+            x: local.x,
+            y: local.y,
+            heading_rad: wrap_angle(heading - h0),
+            speed_mps: track.speed_mps,
+        });
+    }
+
+    let header = LogHeader {
+        format: LOG_FORMAT.to_string(),
+        snapshot_rate_hz: scenario.snapshot_rate_hz,
+        aoa,
+        speed: false,
+        source: Some(format!(
+            "echomap-agent simulate: scenario {} track {} seed {}",
+            scenario.name, track.name, opts.seed
+        )),
+    };
+    let truth = GroundTruth {
+        format: TRUTH_FORMAT.to_string(),
+        world_from_local: Transform2::from_isometry(&world_from_local),
+        poses,
+        transmitters: true_tx,
+    };
+    Ok(SimOutput {
+        log: MeasurementLog { header, snapshots },
+        truth,
+    })
+}
+
+/// Noise-free virtual transmitters (world frame) that are detectable somewhere along a track,
+/// sampled every `step_m` metres — for drawing scenarios.
+pub fn visible_virtual_transmitters(
+    scenario: &Scenario,
+    track: &Track,
+    step_m: f64,
+) -> Vec<(Point2<f64>, f64, String)> {
+    let geo = scenario.geometry();
+    let seqs = sequences(
+        geo.walls.len(),
+        geo.scatterers.len(),
+        scenario.estimator.max_order,
+    );
+    let traj = Trajectory::new(&track.waypoints, track.turn_radius_m);
+    let noise = scenario.noise_power_dbm();
+    let mut seen: Vec<Option<(Point2<f64>, f64, String)>> = vec![None; seqs.len()];
+    let mut s = 0.0;
+    while s <= traj.length_m() {
+        let (pos, _) = traj.pose_at(s);
+        for (seq, path) in trace_all(&geo, &seqs, &pos) {
+            if seen[seq].is_none()
+                && scenario.path_power_dbm(&path) - noise
+                    >= scenario.estimator.detection_threshold_db
+            {
+                seen[seq] = Some((path.vtx, path.b_m, path.kind().to_string()));
+            }
+        }
+        s += step_m;
+    }
+    seen.into_iter().flatten().collect()
+}
