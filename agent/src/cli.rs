@@ -1,10 +1,12 @@
 //! Command-line interface of `echomap-agent` (kept in the library so tests reach it).
 
+use crate::filter::{Association, BPrior, FilterConfig, NoiseModel};
 use crate::sim::builtin;
 use crate::sim::simulate::{SimOptions, simulate};
 use crate::sim::{Scenario, SimOutput};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
+use echomap_shared::log::{GroundTruth, MeasurementLog};
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, Parser)]
@@ -22,6 +24,9 @@ pub struct Cli {
 pub enum Command {
     /// Simulate one track of a scenario: writes log.jsonl and truth.json into --out.
     Simulate(SimulateArgs),
+    /// Run single-user Channel-SLAM on a log (or a freshly simulated track); writes map.json,
+    /// track.csv and plots into --out.
+    Run(RunArgs),
     /// The main job for now: simulate the indoor reference track and render the scenario and
     /// the channel-estimator output into --out (default out/demo).
     Demo(DemoArgs),
@@ -53,6 +58,88 @@ pub struct SimulateArgs {
     /// output directory (created if missing)
     #[arg(long)]
     pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct FilterArgs {
+    /// number of user particles
+    #[arg(long, default_value_t = 1000)]
+    pub particles: usize,
+    /// data association of new tracks with old transmitters
+    #[arg(long, value_enum, default_value_t = Association::Ml)]
+    pub association: Association,
+    /// prior on a new transmitter's clock offset: `uniform` (b ∈ [0, d)) or `zero` (line of sight only)
+    #[arg(long, default_value = "uniform")]
+    pub b_prior: String,
+    /// initial speed (m/s); default: from the ground truth when present, else 0
+    #[arg(long)]
+    pub initial_speed: Option<f64>,
+    /// heading random walk of the motion model (rad/√s)
+    #[arg(long, default_value_t = FilterConfig::default().heading_noise_rad_per_sqrt_s)]
+    pub heading_noise: f64,
+    /// speed random walk of the motion model (m/s/√s)
+    #[arg(long, default_value_t = FilterConfig::default().speed_noise_mps_per_sqrt_s)]
+    pub speed_noise: f64,
+    /// distance noise floor the filter assumes (m)
+    #[arg(long, default_value_t = NoiseModel::default().distance_floor_m)]
+    pub distance_std: f64,
+    /// AoA noise floor the filter assumes (rad)
+    #[arg(long, default_value_t = NoiseModel::default().aoa_floor_rad)]
+    pub aoa_std: f64,
+}
+
+impl FilterArgs {
+    /// The filter configuration for one run.
+    pub fn config(&self, seed: u64, initial_speed: f64) -> Result<FilterConfig> {
+        let b_prior = match self.b_prior.as_str() {
+            "uniform" => BPrior::Uniform,
+            "zero" => BPrior::Zero { std_m: 0.05 },
+            other => bail!("--b-prior must be `uniform` or `zero`, got {other:?}"),
+        };
+        anyhow::ensure!(self.particles >= 1, "--particles must be at least 1");
+        Ok(FilterConfig {
+            particles: self.particles,
+            seed,
+            association: self.association,
+            b_prior,
+            initial_speed_mps: self.initial_speed.unwrap_or(initial_speed),
+            heading_noise_rad_per_sqrt_s: self.heading_noise,
+            speed_noise_mps_per_sqrt_s: self.speed_noise,
+            noise: NoiseModel {
+                distance_floor_m: self.distance_std,
+                aoa_floor_rad: self.aoa_std,
+                ..NoiseModel::default()
+            },
+            ..FilterConfig::default()
+        })
+    }
+}
+
+#[derive(Debug, Args)]
+pub struct RunArgs {
+    /// directory with log.jsonl (and truth.json when known); instead of --scenario
+    #[arg(long, conflicts_with = "scenario")]
+    pub log: Option<PathBuf>,
+    /// simulate this scenario's --track first (built-in name or JSON file)
+    #[arg(long)]
+    pub scenario: Option<String>,
+    /// track to simulate with --scenario
+    #[arg(long, default_value = "reference")]
+    pub track: String,
+    /// single-antenna receiver (with --scenario)
+    #[arg(long)]
+    pub toa_only: bool,
+    /// seed of the simulation and of the filter
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    #[command(flatten)]
+    pub filter: FilterArgs,
+    /// output directory
+    #[arg(long)]
+    pub out: PathBuf,
+    /// no progress bar
+    #[arg(long)]
+    pub quiet: bool,
 }
 
 #[derive(Debug, Args)]
@@ -147,6 +234,19 @@ pub fn run(cli: Cli) -> Result<()> {
             );
             Ok(())
         }
+        Command::Run(a) => {
+            let (log, truth) = load_run_input(&a)?;
+            let initial_speed = truth
+                .as_ref()
+                .and_then(|t| t.poses.first())
+                .map(|p| p.speed_mps)
+                .unwrap_or(0.0);
+            let cfg = a.filter.config(a.seed, initial_speed)?;
+            let out = crate::run::run_filter(&log, truth.as_ref(), cfg, !a.quiet)?;
+            crate::output::write_run(&out, truth.as_ref(), &a.out)?;
+            crate::output::print_summary(&out, truth.as_ref());
+            Ok(())
+        }
         Command::Demo(a) => {
             let scenario = builtin::indoor();
             let out = simulate(
@@ -205,5 +305,46 @@ pub fn run(cli: Cli) -> Result<()> {
             println!("wrote {}", a.out.display());
             Ok(())
         }
+    }
+}
+
+/// The log (and ground truth, when there is one) a `run` works on.
+pub fn load_run_input(a: &RunArgs) -> Result<(MeasurementLog, Option<GroundTruth>)> {
+    match (&a.log, &a.scenario) {
+        (Some(dir), None) => {
+            let log_path = dir.join("log.jsonl");
+            let text = std::fs::read_to_string(&log_path)
+                .with_context(|| format!("reading {}", log_path.display()))?;
+            let log = MeasurementLog::parse(&text)
+                .with_context(|| format!("in {}", log_path.display()))?;
+            let truth_path = dir.join("truth.json");
+            let truth = if truth_path.exists() {
+                let text = std::fs::read_to_string(&truth_path)?;
+                Some(
+                    GroundTruth::parse(&text)
+                        .map_err(anyhow::Error::msg)
+                        .with_context(|| format!("in {}", truth_path.display()))?,
+                )
+            } else {
+                None
+            };
+            Ok((log, truth))
+        }
+        (None, Some(s)) => {
+            let scenario = load_scenario(&ScenarioSource {
+                scenario: s.clone(),
+                toa_only: a.toa_only,
+            })?;
+            let out = simulate(
+                &scenario,
+                &a.track,
+                SimOptions {
+                    seed: a.seed,
+                    toa_only: a.toa_only,
+                },
+            )?;
+            Ok((out.log, Some(out.truth)))
+        }
+        _ => bail!("give either --log DIR or --scenario S"),
     }
 }

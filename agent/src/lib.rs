@@ -2,5 +2,9 @@
 //! Channel-SLAM filter, evaluation and the server client join here as they land.
 
 pub mod cli;
+pub mod eval;
+pub mod filter;
+pub mod output;
 pub mod plot;
+pub mod run;
 pub mod sim;

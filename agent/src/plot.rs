@@ -271,3 +271,225 @@ pub fn draw_components(
     }
     with_backend(out, (1000, 600), |root| body!(root), |root| body!(root))
 }
+
+/// Estimated track and map (transmitter means with 2σ ellipses) over the true track and
+/// true virtual transmitters (local frame).
+pub fn draw_track_and_map(
+    rows: &[crate::eval::TrackRow],
+    map: &echomap_shared::TransmitterMap,
+    truth: Option<&echomap_shared::log::GroundTruth>,
+    out: &Path,
+) -> Result<()> {
+    let est: Vec<(f64, f64)> = rows.iter().map(|r| (r.x, r.y)).collect();
+    let tru: Vec<(f64, f64)> = rows
+        .iter()
+        .filter_map(|r| r.truth.map(|t| (t.true_x, t.true_y)))
+        .collect();
+    let txs: Vec<(f64, f64, [f64; 3])> = map
+        .transmitters()
+        .iter()
+        .filter(|t| t.existence >= 0.5)
+        .map(|t| {
+            let (m, p) = t.moments();
+            (m.x, m.y, [p[(0, 0)], p[(0, 1)], p[(1, 1)]])
+        })
+        .filter(|t| t.2[0] + t.2[2] < 25.0)
+        .collect();
+    let true_tx: Vec<(f64, f64)> = truth
+        .map(|t| {
+            t.transmitters
+                .iter()
+                .map(|v| (v.state[0], v.state[1]))
+                .collect()
+        })
+        .unwrap_or_default();
+    let all: Vec<(f64, f64)> = est
+        .iter()
+        .chain(&tru)
+        .chain(true_tx.iter())
+        .copied()
+        .chain(txs.iter().map(|t| (t.0, t.1)))
+        .collect();
+    let (x0, x1) = all.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |a, p| {
+        (a.0.min(p.0), a.1.max(p.0))
+    });
+    let (y0, y1) = all.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |a, p| {
+        (a.0.min(p.1), a.1.max(p.1))
+    });
+    let pad = 0.05 * (x1 - x0).max(y1 - y0).max(1.0);
+    let (x0, x1, y0, y1) = (x0 - pad, x1 + pad, y0 - pad, y1 + pad);
+    let w_px = 1000u32;
+    let h_px =
+        ((f64::from(w_px) - 80.0) * (y1 - y0) / (x1 - x0) + 110.0).clamp(300.0, 1600.0) as u32;
+    let ellipse = |x: f64, y: f64, c: [f64; 3]| -> Vec<(f64, f64)> {
+        // 2σ ellipse of the 2×2 covariance [[a, b], [b, d]]
+        let m = nalgebra::Matrix2::new(c[0], c[1], c[1], c[2]);
+        let l = m
+            .cholesky()
+            .map(|ch| ch.l())
+            .unwrap_or_else(nalgebra::Matrix2::zeros);
+        (0..=36)
+            .map(|k| {
+                let a = k as f64 * std::f64::consts::TAU / 36.0;
+                let v = l * nalgebra::Vector2::new(a.cos(), a.sin()) * 2.0;
+                (x + v.x, y + v.y)
+            })
+            .collect()
+    };
+    macro_rules! body {
+        ($root:expr) => {{
+            let root = $root;
+            root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
+            let mut chart = ChartBuilder::on(root)
+                .caption("estimated track and map (local frame)", ("sans-serif", 22))
+                .margin(10)
+                .x_label_area_size(35)
+                .y_label_area_size(45)
+                .build_cartesian_2d(x0..x1, y0..y1)
+                .map_err(|e| anyhow!("{e}"))?;
+            chart
+                .configure_mesh()
+                .x_desc("x (m)")
+                .y_desc("y (m)")
+                .draw()
+                .map_err(|e| anyhow!("{e}"))?;
+            if !tru.is_empty() {
+                chart
+                    .draw_series(LineSeries::new(tru.clone(), BLACK.stroke_width(2)))
+                    .map_err(|e| anyhow!("{e}"))?
+                    .label("true track")
+                    .legend(|(x, y)| {
+                        PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(2))
+                    });
+                chart
+                    .draw_series(
+                        true_tx
+                            .iter()
+                            .map(|p| Cross::new(*p, 5, RED.stroke_width(2))),
+                    )
+                    .map_err(|e| anyhow!("{e}"))?
+                    .label("true virtual Tx")
+                    .legend(|(x, y)| Cross::new((x + 10, y), 5, RED.stroke_width(2)));
+            }
+            chart
+                .draw_series(LineSeries::new(est.clone(), BLUE.stroke_width(2)))
+                .map_err(|e| anyhow!("{e}"))?
+                .label("estimate")
+                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
+            for t in &txs {
+                chart
+                    .draw_series(LineSeries::new(
+                        ellipse(t.0, t.1, t.2),
+                        MAGENTA.stroke_width(1),
+                    ))
+                    .map_err(|e| anyhow!("{e}"))?;
+            }
+            chart
+                .draw_series(
+                    txs.iter()
+                        .map(|t| TriangleMarker::new((t.0, t.1), 5, MAGENTA.filled())),
+                )
+                .map_err(|e| anyhow!("{e}"))?
+                .label("estimated Tx (2σ)")
+                .legend(|(x, y)| TriangleMarker::new((x + 10, y), 5, MAGENTA.filled()));
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK)
+                .draw()
+                .map_err(|e| anyhow!("{e}"))?;
+            Ok(())
+        }};
+    }
+    with_backend(out, (w_px, h_px), |root| body!(root), |root| body!(root))
+}
+
+/// MAE and RMSE against travelled distance for one run.
+pub fn draw_error(rows: &[crate::eval::TrackRow], out: &Path) -> Result<()> {
+    let curves = vec![
+        (
+            "MAE (eq. 27)".to_string(),
+            BLUE,
+            rows.iter()
+                .filter_map(|r| r.truth.map(|t| (r.traveled_m, t.mae_m)))
+                .collect(),
+        ),
+        (
+            "RMSE".to_string(),
+            RED,
+            rows.iter()
+                .filter_map(|r| r.truth.map(|t| (r.traveled_m, t.rmse_m)))
+                .collect(),
+        ),
+    ];
+    draw_curves(
+        "position error vs travelled distance",
+        "error (m)",
+        &curves,
+        out,
+    )
+}
+
+/// A line chart of several labelled curves over travelled distance.
+pub fn draw_curves(
+    title: &str,
+    y_desc: &str,
+    curves: &[(String, RGBColor, Vec<(f64, f64)>)],
+    out: &Path,
+) -> Result<()> {
+    let x_max = curves
+        .iter()
+        .flat_map(|c| c.2.iter().map(|p| p.0))
+        .fold(1.0, f64::max);
+    let y_max = curves
+        .iter()
+        .flat_map(|c| c.2.iter().map(|p| p.1))
+        .filter(|v| v.is_finite())
+        .fold(0.1, f64::max)
+        * 1.05;
+    macro_rules! body {
+        ($root:expr) => {{
+            let root = $root;
+            root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
+            let mut chart = ChartBuilder::on(root)
+                .caption(title, ("sans-serif", 22))
+                .margin(10)
+                .x_label_area_size(35)
+                .y_label_area_size(50)
+                .build_cartesian_2d(0.0..x_max, 0.0..y_max)
+                .map_err(|e| anyhow!("{e}"))?;
+            chart
+                .configure_mesh()
+                .x_desc("travelled distance (m)")
+                .y_desc(y_desc)
+                .draw()
+                .map_err(|e| anyhow!("{e}"))?;
+            for (label, color, pts) in curves {
+                let color = *color;
+                let dashed = label.contains("95") || label.contains(" 5th") || label.contains("p5");
+                let style = if dashed {
+                    color.stroke_width(1)
+                } else {
+                    color.stroke_width(2)
+                };
+                chart
+                    .draw_series(LineSeries::new(
+                        pts.iter().copied().filter(|p| p.1.is_finite()),
+                        style,
+                    ))
+                    .map_err(|e| anyhow!("{e}"))?
+                    .label(label.clone())
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], style));
+            }
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK)
+                .position(SeriesLabelPosition::UpperLeft)
+                .draw()
+                .map_err(|e| anyhow!("{e}"))?;
+            Ok(())
+        }};
+    }
+    with_backend(out, (1000, 600), |root| body!(root), |root| body!(root))
+}

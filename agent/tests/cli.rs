@@ -151,3 +151,92 @@ fn the_readme_example_scenario_simulates() {
         "LoS everywhere in the corridor"
     );
 }
+
+#[test]
+fn run_writes_map_track_and_plots() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim_dir = dir.path().join("sim");
+    let st = agent()
+        .args([
+            "simulate",
+            "--scenario",
+            "indoor",
+            "--track",
+            "user01",
+            "--seed",
+            "2",
+            "--out",
+        ])
+        .arg(&sim_dir)
+        .output()
+        .unwrap();
+    assert!(st.status.success());
+    let out = dir.path().join("run");
+    let st = agent()
+        .args([
+            "run",
+            "--particles",
+            "100",
+            "--quiet",
+            "--seed",
+            "2",
+            "--log",
+        ])
+        .arg(&sim_dir)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    assert!(String::from_utf8_lossy(&st.stdout).contains("MAE"));
+    let map = echomap_shared::TransmitterMap::from_json(
+        &std::fs::read_to_string(out.join("map.json")).unwrap(),
+    )
+    .unwrap();
+    assert!(!map.is_empty());
+    let csv = std::fs::read_to_string(out.join("track.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert!(
+        lines
+            .next()
+            .unwrap()
+            .starts_with("t,x,y,traveled_m,true_x,true_y,mae_m,rmse_m")
+    );
+    let log = std::fs::read_to_string(sim_dir.join("log.jsonl")).unwrap();
+    assert_eq!(
+        lines.count(),
+        log.lines().count() - 1,
+        "one row per snapshot"
+    );
+    for f in ["track.png", "track.svg", "error.png", "error.svg"] {
+        assert!(out.join(f).exists(), "{f}");
+    }
+}
+
+#[test]
+fn run_on_a_malformed_log_names_the_line_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("in");
+    std::fs::create_dir_all(&log).unwrap();
+    std::fs::write(
+        log.join("log.jsonl"),
+        "{\"format\":\"echomap.log.v1\",\"snapshot_rate_hz\":10.0,\"aoa\":true}\n{\"t\":0.0,\"gyro\":0.0,\"components\":[]}\n{\"t\":0.1,\"gyro\":0.0,\"components\":[{\"track\":1,\"d\":\"far\",\"aoa\":0.0,\"snr_db\":3}]}\n",
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let st = agent()
+        .args(["run", "--quiet", "--log"])
+        .arg(&log)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!st.status.success());
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(err.contains("line 3"), "{err}");
+    assert!(!out.exists());
+}

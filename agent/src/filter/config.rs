@@ -1,0 +1,124 @@
+//! Filter settings with their defaults and units.
+
+use serde::{Deserialize, Serialize};
+
+/// Data-association method for new tracks (seed 002 §5).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Association {
+    /// every new track is a new transmitter
+    Off,
+    /// maximum likelihood: the most likely of {old transmitters, none} (eq. 56)
+    Ml,
+    /// data association sampling: sampled in proportion to the likelihoods
+    Das,
+}
+
+/// Prior on a new transmitter's clock offset b.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BPrior {
+    /// b ∈ [0, d) uniform: the transmitter lies anywhere on the ray up to range d (seed 002 §4.3)
+    Uniform,
+    /// b ≈ 0 with the given std (m): line-of-sight-only data such as MRCLAM landmarks
+    Zero { std_m: f64 },
+}
+
+/// Measurement noise the filter assumes, as a function of the reported per-sample SNR γ (dB):
+/// `σ = √(floor² + (at_0db · 10^(−γ/20))²)` — the shape of the CRLB (see the README).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct NoiseModel {
+    pub distance_floor_m: f64,
+    pub distance_at_0db_m: f64,
+    pub aoa_floor_rad: f64,
+    pub aoa_at_0db_rad: f64,
+}
+
+impl Default for NoiseModel {
+    /// 1.5× the simulator's default floors (model-mismatch margin) and its CRLB terms for
+    /// 100 MHz, 64 samples and a 3×3 array.
+    fn default() -> Self {
+        NoiseModel {
+            distance_floor_m: 0.375,
+            distance_at_0db_m: 0.15,
+            aoa_floor_rad: 6f64.to_radians(),
+            aoa_at_0db_rad: 0.012,
+        }
+    }
+}
+
+impl NoiseModel {
+    /// (σ_d in m, σ_θ in rad) at SNR `snr_db`.
+    pub fn std(&self, snr_db: f64) -> (f64, f64) {
+        let f = 10f64.powf(-snr_db / 20.0);
+        (
+            self.distance_floor_m.hypot(self.distance_at_0db_m * f),
+            self.aoa_floor_rad.hypot(self.aoa_at_0db_rad * f),
+        )
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FilterConfig {
+    /// number of user particles
+    pub particles: usize,
+    /// seed of every random draw
+    pub seed: u64,
+    pub association: Association,
+    /// heading random walk of the motion model (rad/√s); von Mises per step with κ = 1/(σ²·Δt)
+    pub heading_noise_rad_per_sqrt_s: f64,
+    /// speed random walk when no speed is measured (m/s/√s)
+    pub speed_noise_mps_per_sqrt_s: f64,
+    /// std of a measured speed (m/s), when the log carries speed
+    pub speed_measurement_std_mps: f64,
+    /// the known initial speed (m/s) (seed 002 §6.1: the initial state is known)
+    pub initial_speed_mps: f64,
+    /// spread of the initial speed over particles (m/s)
+    pub initial_speed_std_mps: f64,
+    pub noise: NoiseModel,
+    pub b_prior: BPrior,
+    /// spacing of initial components along the ray (m)
+    pub init_spacing_m: f64,
+    /// most components a new transmitter starts with
+    pub init_max_components: usize,
+    /// components below this weight are pruned (ρ of seed 002 §4.3)
+    pub prune_weight: f64,
+    /// most components per transmitter and particle (reduced by Runnalls merging)
+    pub max_components: usize,
+    /// resample when ESS < ratio × particles
+    pub resample_ess_ratio: f64,
+    /// likelihood of "no association" (density in 1/(m·rad); ToA-only: 1/m) — p₀ of seed 002 §5
+    pub association_p0: f64,
+    /// hexagon circumradius of the visibility grid (m)
+    pub hex_size_m: f64,
+    /// Beta prior pseudo-counts (ν, ν̄) of seed 001 eq. 12
+    pub visibility_prior: (f64, f64),
+    /// most components per transmitter in the exported map
+    pub export_max_components: usize,
+}
+
+impl Default for FilterConfig {
+    fn default() -> Self {
+        FilterConfig {
+            particles: 1000,
+            seed: 1,
+            association: Association::Ml,
+            heading_noise_rad_per_sqrt_s: 0.03,
+            speed_noise_mps_per_sqrt_s: 0.03,
+            speed_measurement_std_mps: 0.05,
+            initial_speed_mps: 0.0,
+            initial_speed_std_mps: 0.0,
+            noise: NoiseModel::default(),
+            b_prior: BPrior::Uniform,
+            init_spacing_m: 2.0,
+            init_max_components: 24,
+            prune_weight: 1e-3,
+            max_components: 12,
+            resample_ess_ratio: 0.5,
+            association_p0: 0.02,
+            hex_size_m: 2.0,
+            visibility_prior: (1.0, 1.0),
+            export_max_components: 4,
+        }
+    }
+}

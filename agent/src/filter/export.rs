@@ -1,0 +1,119 @@
+//! Export of the particle ensemble as an `echomap.map.v1` user map (local frame).
+//!
+//! Per transmitter identity j (seed 001 §IV):
+//! - existence `p_e = Σ_{i∈T_j} wᵢ` over the particles in which j exists, i.e. did not get
+//!   associated into an older transmitter (eq. 20);
+//! - reliability `d_rel = Σ_{i∈T_j} wᵢ·d_rel,i` (eq. 21);
+//! - state: the particle-weighted mixture over those particles' components, first collapsed
+//!   greedily (components within Mahalanobis distance 1 merge, moment-preserving, ≤ 32
+//!   groups), then reduced by Runnalls merging to `export_max_components`;
+//! - visibility: the evidence counts of the filter's hex grid.
+//!
+//! Particles that share a transmitter through resampling are counted once with their summed
+//! weight, so the cost is driven by distinct transmitter states, not by the particle count.
+
+use super::rbpf::{Filter, TxState};
+use echomap_shared::map::{MapError, Transmitter, TransmitterMap};
+use echomap_shared::mixture::{self, Component, merge_pair, symmetrize};
+use nalgebra::Matrix3;
+use std::collections::HashMap;
+
+const MAX_GROUPS: usize = 32;
+
+fn mahalanobis2(a: &Component, b: &Component) -> f64 {
+    let d = a.mean - b.mean;
+    (a.cov + b.cov)
+        .cholesky()
+        .map(|c| d.dot(&c.solve(&d)))
+        .unwrap_or(f64::INFINITY)
+}
+
+/// Greedy moment-preserving grouping of a large pool of components.
+fn collapse(mut pool: Vec<Component>) -> Vec<Component> {
+    pool.sort_by(|a, b| b.weight.total_cmp(&a.weight));
+    let mut groups: Vec<Component> = Vec::new();
+    for c in pool {
+        let nearest = groups
+            .iter()
+            .enumerate()
+            .map(|(i, g)| (i, mahalanobis2(g, &c)))
+            .min_by(|a, b| a.1.total_cmp(&b.1));
+        match nearest {
+            Some((i, d2)) if d2 < 1.0 || groups.len() >= MAX_GROUPS => {
+                groups[i] = merge_pair(&groups[i], &c)
+            }
+            _ => groups.push(c),
+        }
+    }
+    groups
+}
+
+/// Makes a covariance safely positive definite for the map contract.
+fn spd(cov: &Matrix3<f64>) -> Matrix3<f64> {
+    let mut c = symmetrize(cov);
+    let mut jitter = 1e-9;
+    while c.cholesky().is_none() {
+        c += Matrix3::identity() * jitter;
+        jitter *= 10.0;
+    }
+    c
+}
+
+/// Builds the user map from the filter's current state.
+pub fn export_map(filter: &Filter) -> Result<TransmitterMap, MapError> {
+    let w = filter.weights();
+    let n_id = filter.identities().len();
+    // distinct transmitter states with their summed particle weight
+    let mut distinct: Vec<HashMap<*const TxState, (f64, &TxState)>> = vec![HashMap::new(); n_id];
+    for (p, wi) in filter.particles().iter().zip(&w) {
+        for tx in &p.txs {
+            let e = distinct[tx.identity as usize]
+                .entry(std::sync::Arc::as_ptr(tx))
+                .or_insert((0.0, tx));
+            e.0 += wi;
+        }
+    }
+    let cfg = filter.config();
+    let mut transmitters = Vec::new();
+    for (id, states) in distinct.iter().enumerate() {
+        // deterministic order: by address is not stable across runs, so sort by content
+        let mut states: Vec<(f64, &TxState)> = states.values().copied().collect();
+        states.sort_by(|a, b| {
+            b.0.total_cmp(&a.0).then_with(|| {
+                let (ma, mb) = (a.1.comps[0].g.mean, b.1.comps[0].g.mean);
+                ma.x.total_cmp(&mb.x)
+                    .then(ma.y.total_cmp(&mb.y))
+                    .then(ma.z.total_cmp(&mb.z))
+            })
+        });
+        let existence: f64 = states.iter().map(|s| s.0).sum();
+        if existence < 1e-6 {
+            continue;
+        }
+        let reliability: f64 = states.iter().map(|(wi, tx)| wi * tx.reliability_m).sum();
+        let pool: Vec<Component> = states
+            .iter()
+            .flat_map(|(wi, tx)| {
+                tx.comps
+                    .iter()
+                    .map(move |c| Component::new(wi * c.weight / existence, c.g.mean, c.g.cov()))
+            })
+            .collect();
+        let mut comps = mixture::reduce(&collapse(pool), cfg.export_max_components.max(1));
+        mixture::normalize(&mut comps).map_err(|_| MapError {
+            path: format!("transmitters[t{}]", filter.identities()[id].track),
+            kind: echomap_shared::map::MapErrorKind::Empty,
+        })?;
+        for c in &mut comps {
+            c.cov = spd(&c.cov);
+        }
+        transmitters.push(Transmitter {
+            id: format!("t{}", filter.identities()[id].track),
+            components: comps,
+            existence: existence.clamp(0.0, 1.0),
+            reliability_m: reliability.max(0.0),
+            visibility: filter.visibility().cells(id),
+        });
+    }
+    TransmitterMap::new(cfg.hex_size_m, transmitters)
+}

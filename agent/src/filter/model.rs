@@ -1,0 +1,161 @@
+//! Measurement model (seed 002 eq. 19–21, AoA convention of DESIGN.md) and the
+//! initialization of a new transmitter from its first measurement (seed 002 §4.3).
+
+use super::config::{BPrior, FilterConfig};
+use super::srckf::SqrtGaussian;
+use echomap_shared::wrap_angle;
+use nalgebra::{Matrix3, Vector1, Vector2, Vector3};
+
+/// User pose of one particle: position, heading (rad) and speed (m/s).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pose {
+    pub x: f64,
+    pub y: f64,
+    pub heading: f64,
+    pub speed: f64,
+}
+
+/// Range + AoA of a transmitter state seen from `pose`: `d = ‖p_tx − p_u‖ + b`,
+/// `θ = atan2(Δy, Δx) − heading` (wrapped).
+pub fn h_toa_aoa(pose: &Pose, x: &Vector3<f64>) -> Vector2<f64> {
+    let (dx, dy) = (x.x - pose.x, x.y - pose.y);
+    Vector2::new(dx.hypot(dy) + x.z, wrap_angle(dy.atan2(dx) - pose.heading))
+}
+
+pub fn h_toa(pose: &Pose, x: &Vector3<f64>) -> Vector1<f64> {
+    Vector1::new((x.x - pose.x).hypot(x.y - pose.y) + x.z)
+}
+
+pub fn residual_toa_aoa(a: &Vector2<f64>, b: &Vector2<f64>) -> Vector2<f64> {
+    Vector2::new(a.x - b.x, wrap_angle(a.y - b.y))
+}
+
+pub fn residual_toa(a: &Vector1<f64>, b: &Vector1<f64>) -> Vector1<f64> {
+    a - b
+}
+
+/// One weighted component of a transmitter mixture.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Comp {
+    pub weight: f64,
+    pub g: SqrtGaussian,
+}
+
+fn outer(v: &Vector3<f64>) -> Matrix3<f64> {
+    v * v.transpose()
+}
+
+/// Components of a new transmitter from its first measurement `(d, θ)` at `pose`.
+///
+/// With AoA, the transmitter lies on the ray from the user along `heading + θ` at a range
+/// `r ∈ (0, d]` with `b = d − r`: components are spread along that ray (their count grows
+/// with d), each elongated along the ray direction in (x, y, b) space — moving along the ray
+/// by δ changes b by −δ — and `r·σ_θ` wide across it. ToA-only: rings of components around
+/// the user. With a zero-b prior, the range is d itself.
+pub fn initialize(
+    cfg: &FilterConfig,
+    pose: &Pose,
+    d: f64,
+    aoa: Option<f64>,
+    sigma_d: f64,
+    sigma_a: f64,
+) -> Vec<Comp> {
+    let eps = 1e-6;
+    let ranges: Vec<(f64, f64)> = match cfg.b_prior {
+        BPrior::Zero { .. } => vec![(d, 0.0)],
+        BPrior::Uniform => {
+            let n = ((d / cfg.init_spacing_m).ceil() as usize).clamp(1, cfg.init_max_components);
+            let dr = d / n as f64;
+            (0..n).map(|k| ((k as f64 + 0.5) * dr, dr / 2.0)).collect()
+        }
+    };
+    let angles: Vec<(f64, f64)> = match aoa {
+        Some(a) => vec![(pose.heading + a, sigma_a)],
+        None => {
+            // A ring: enough directions to cover the circle at the mean range, within budget.
+            let r_mid = ranges[ranges.len() / 2].0;
+            let budget = (cfg.init_max_components * 2 / ranges.len().max(1)).max(4);
+            let n = ((2.0 * std::f64::consts::PI * r_mid / cfg.init_spacing_m).ceil() as usize)
+                .clamp(4, budget.max(4));
+            let step = 2.0 * std::f64::consts::PI / n as f64;
+            (0..n).map(|k| (k as f64 * step, step / 2.0)).collect()
+        }
+    };
+    let b_std = match cfg.b_prior {
+        BPrior::Zero { std_m } => std_m.max(eps),
+        BPrior::Uniform => sigma_d,
+    };
+    let mut comps = Vec::with_capacity(ranges.len() * angles.len());
+    for &(phi, s_phi) in &angles {
+        let u = Vector2::new(phi.cos(), phi.sin());
+        let along = Vector3::new(u.x, u.y, -1.0);
+        let across = Vector3::new(-u.y, u.x, 0.0);
+        let radial = Vector3::new(u.x, u.y, 0.0);
+        for &(r, s_r) in &ranges {
+            let mean = Vector3::new(pose.x + r * u.x, pose.y + r * u.y, (d - r).max(0.0));
+            let s_across = (r * s_phi).max(0.05);
+            let mut cov = outer(&across) * s_across.powi(2) + Matrix3::identity() * eps;
+            match cfg.b_prior {
+                // b fixed near 0: the range error is radial in x/y
+                BPrior::Zero { .. } => {
+                    cov += outer(&radial) * sigma_d.powi(2) + outer(&Vector3::z()) * b_std.powi(2);
+                }
+                BPrior::Uniform => {
+                    cov += outer(&along) * s_r.powi(2) + outer(&Vector3::z()) * b_std.powi(2);
+                }
+            }
+            if let Some(g) = SqrtGaussian::from_cov(mean, &cov) {
+                comps.push(Comp { weight: 1.0, g });
+            }
+        }
+    }
+    let n = comps.len() as f64;
+    for c in &mut comps {
+        c.weight = 1.0 / n;
+    }
+    comps
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn initial_components_reproduce_the_measurement() {
+        let cfg = FilterConfig::default();
+        let pose = Pose {
+            x: 1.0,
+            y: 2.0,
+            heading: 0.7,
+            speed: 1.0,
+        };
+        let comps = initialize(&cfg, &pose, 20.0, Some(-0.4), 0.1, 0.03);
+        assert_eq!(comps.len(), 10);
+        let total: f64 = comps.iter().map(|c| c.weight).sum();
+        assert!((total - 1.0).abs() < 1e-12);
+        for c in &comps {
+            let z = h_toa_aoa(&pose, &c.g.mean);
+            assert!(
+                (z.x - 20.0).abs() < 1e-9 && wrap_angle(z.y + 0.4).abs() < 1e-9,
+                "{z:?}"
+            );
+            assert!(c.g.mean.z >= 0.0);
+        }
+        // ToA-only: rings, every mean at the right distance
+        let comps = initialize(&cfg, &pose, 20.0, None, 0.1, 0.03);
+        assert!(comps.len() >= 10);
+        assert!(
+            comps
+                .iter()
+                .all(|c| (h_toa(&pose, &c.g.mean).x - 20.0).abs() < 1e-9)
+        );
+        // zero-b prior: one component at range d, b ≈ 0
+        let cfg = FilterConfig {
+            b_prior: BPrior::Zero { std_m: 0.05 },
+            ..FilterConfig::default()
+        };
+        let comps = initialize(&cfg, &pose, 20.0, Some(-0.4), 0.1, 0.03);
+        assert_eq!(comps.len(), 1);
+        assert!(comps[0].g.mean.z.abs() < 1e-12);
+    }
+}

@@ -1,0 +1,678 @@
+//! The RBGSPF core (seed 002 Algorithm 1): predict user particles, update every transmitter
+//! mixture with its measurement, weight particles, associate new tracks, resample.
+//!
+//! Weights, in log space: component weights `w_c ∝ w_c · N(z; ẑ_c, P_zz,c)` (eq. 46) and
+//! particle weights `w_i ∝ w_i · Σ_c w_c N(z; ẑ_c, P_zz,c)` over every measured transmitter
+//! (eq. 45). Particles are processed in parallel with rayon; each particle draws from its own
+//! ChaCha stream derived from (seed, step, particle index), and all reductions run in
+//! particle order, so a run is identical for any thread count. Resampled particles share
+//! unchanged transmitters through `Arc` (copy-on-write with `Arc::make_mut`).
+
+use super::config::{Association, FilterConfig};
+use super::model::{Comp, Pose, h_toa, h_toa_aoa, initialize, residual_toa, residual_toa_aoa};
+use super::srckf::{self, SqrtGaussian};
+use super::visibility::Visibility;
+use super::vonmises;
+use echomap_shared::log::{Measurement, Snapshot};
+use echomap_shared::mixture::{self, Component};
+use echomap_shared::wrap_angle;
+use nalgebra::{Matrix1, Matrix2, Point2, Vector1, Vector2};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use rayon::prelude::*;
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::sync::Arc;
+
+/// One transmitter of one particle.
+#[derive(Debug, Clone)]
+pub struct TxState {
+    /// dense index of the identity (the track that created it)
+    pub identity: u32,
+    pub comps: Vec<Comp>,
+    /// distance this particle walked while the transmitter was visible (seed 001 eq. 21)
+    pub reliability_m: f64,
+}
+
+#[derive(Debug, Clone)]
+pub struct Particle {
+    pub pose: Pose,
+    pub log_w: f64,
+    pub txs: Vec<Arc<TxState>>,
+    /// active track id → index into `txs`
+    pub bound: Vec<(u64, u32)>,
+}
+
+/// Identity of a transmitter: the track id that created it.
+#[derive(Debug, Clone)]
+pub struct Identity {
+    pub track: u64,
+    pub first_step: usize,
+}
+
+/// Summary of one filter step.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepStats {
+    pub t: f64,
+    pub x: f64,
+    pub y: f64,
+    pub ess: f64,
+    pub resampled: bool,
+    pub transmitters: f64,
+    pub components: f64,
+    /// distance travelled by the weighted-mean estimate (m)
+    pub traveled_m: f64,
+}
+
+#[derive(Debug)]
+pub struct Filter {
+    cfg: FilterConfig,
+    aoa: bool,
+    particles: Vec<Particle>,
+    identities: Vec<Identity>,
+    track_identity: HashMap<u64, u32>,
+    prev_tracks: BTreeSet<u64>,
+    visibility: Visibility,
+    step: usize,
+    prev_t: Option<f64>,
+    traveled: f64,
+    last_mean: Point2<f64>,
+}
+
+/// Per-measurement noise factor and the measurement as a vector.
+enum Meas {
+    ToaAoa {
+        z: Vector2<f64>,
+        r_sqrt: Matrix2<f64>,
+    },
+    Toa {
+        z: Vector1<f64>,
+        r_sqrt: Matrix1<f64>,
+    },
+}
+
+impl Meas {
+    fn new(m: &Measurement, cfg: &FilterConfig, aoa: bool) -> Self {
+        let (sd, sa) = cfg.noise.std(m.snr_db);
+        match (aoa, m.aoa) {
+            (true, Some(a)) => Meas::ToaAoa {
+                z: Vector2::new(m.d, a),
+                r_sqrt: Matrix2::new(sd, 0.0, 0.0, sa),
+            },
+            _ => Meas::Toa {
+                z: Vector1::new(m.d),
+                r_sqrt: Matrix1::new(sd),
+            },
+        }
+    }
+
+    fn sigmas(&self) -> (f64, f64) {
+        match self {
+            Meas::ToaAoa { r_sqrt, .. } => (r_sqrt[(0, 0)], r_sqrt[(1, 1)]),
+            Meas::Toa { r_sqrt, .. } => (r_sqrt[(0, 0)], std::f64::consts::PI),
+        }
+    }
+
+    /// Updates one component; returns the posterior and ln N(z; ẑ, P_zz).
+    fn update(&self, pose: &Pose, g: &SqrtGaussian) -> Option<srckf::Updated> {
+        match self {
+            Meas::ToaAoa { z, r_sqrt } => {
+                srckf::update(g, z, r_sqrt, |x| h_toa_aoa(pose, x), residual_toa_aoa)
+            }
+            Meas::Toa { z, r_sqrt } => {
+                srckf::update(g, z, r_sqrt, |x| h_toa(pose, x), residual_toa)
+            }
+        }
+    }
+
+    /// ln N(z; ẑ, P_zz) without updating (for association likelihoods).
+    fn log_likelihood(&self, pose: &Pose, g: &SqrtGaussian) -> Option<f64> {
+        match self {
+            Meas::ToaAoa { z, r_sqrt } => {
+                let p = srckf::predict(
+                    g,
+                    |x| h_toa_aoa(pose, x),
+                    residual_toa_aoa,
+                    &(r_sqrt * r_sqrt.transpose()),
+                );
+                srckf::log_normal(&residual_toa_aoa(z, &p.z_hat), &p.pzz)
+            }
+            Meas::Toa { z, r_sqrt } => {
+                let p = srckf::predict(
+                    g,
+                    |x| h_toa(pose, x),
+                    residual_toa,
+                    &(r_sqrt * r_sqrt.transpose()),
+                );
+                srckf::log_normal(&residual_toa(z, &p.z_hat), &p.pzz)
+            }
+        }
+    }
+
+    fn d(&self) -> f64 {
+        match self {
+            Meas::ToaAoa { z, .. } => z.x,
+            Meas::Toa { z, .. } => z.x,
+        }
+    }
+
+    fn aoa(&self) -> Option<f64> {
+        match self {
+            Meas::ToaAoa { z, .. } => Some(z.y),
+            Meas::Toa { .. } => None,
+        }
+    }
+}
+
+fn log_sum_exp(v: impl Iterator<Item = f64> + Clone) -> f64 {
+    let max = v.clone().fold(f64::NEG_INFINITY, f64::max);
+    if max == f64::NEG_INFINITY {
+        return max;
+    }
+    max + v.map(|x| (x - max).exp()).sum::<f64>().ln()
+}
+
+/// Updates every component of a mixture with one measurement (eq. 46) and returns the
+/// log marginal likelihood ln Σ_c w_c N(z; ẑ_c, P_zz,c) (the factor of eq. 45).
+fn update_mixture(
+    comps: &mut Vec<Comp>,
+    meas: &Meas,
+    pose: &Pose,
+    cfg: &FilterConfig,
+    merge_now: bool,
+) -> f64 {
+    let mut logs = Vec::with_capacity(comps.len());
+    let mut next = Vec::with_capacity(comps.len());
+    for c in comps.iter() {
+        if let Some(u) = meas.update(pose, &c.g) {
+            logs.push(c.weight.ln() + u.log_likelihood);
+            next.push(Comp {
+                weight: 0.0,
+                g: u.posterior,
+            });
+        }
+    }
+    if next.is_empty() {
+        // Numerically degenerate: keep the prior mixture, give the particle no support.
+        return -1e3;
+    }
+    let total = log_sum_exp(logs.iter().copied());
+    for (c, l) in next.iter_mut().zip(&logs) {
+        c.weight = (l - total).exp();
+    }
+    *comps = next;
+    tidy(comps, cfg, merge_now);
+    total
+}
+
+/// Pruning (ρ), merging of close components and the per-transmitter cap (seed 002 §4.3).
+fn tidy(comps: &mut Vec<Comp>, cfg: &FilterConfig, merge_now: bool) {
+    if comps.len() > 1 {
+        let max_w = comps.iter().map(|c| c.weight).fold(0.0, f64::max);
+        comps.retain(|c| c.weight >= cfg.prune_weight || c.weight == max_w);
+        let total: f64 = comps.iter().map(|c| c.weight).sum();
+        for c in comps.iter_mut() {
+            c.weight /= total;
+        }
+    }
+    let cap = if merge_now {
+        1.max(close_cluster_count(comps))
+    } else {
+        usize::MAX
+    };
+    let cap = cap.min(cfg.max_components);
+    if comps.len() > cap {
+        let as_components: Vec<Component> = comps
+            .iter()
+            .map(|c| Component::new(c.weight, c.g.mean, c.g.cov()))
+            .collect();
+        let reduced = mixture::reduce(&as_components, cap);
+        *comps = reduced
+            .into_iter()
+            .filter_map(|c| {
+                SqrtGaussian::from_cov(c.mean, &c.cov).map(|g| Comp {
+                    weight: c.weight,
+                    g,
+                })
+            })
+            .collect();
+    }
+}
+
+/// Number of groups of components whose means lie within Mahalanobis distance 1 of each
+/// other — merging down to this count removes duplicates that converged together.
+fn close_cluster_count(comps: &[Comp]) -> usize {
+    if comps.len() < 2 {
+        return comps.len();
+    }
+    let mut leaders: Vec<usize> = Vec::new();
+    for (i, c) in comps.iter().enumerate() {
+        let close = leaders.iter().any(|&l| {
+            let p = c.g.cov() + comps[l].g.cov();
+            let d = c.g.mean - comps[l].g.mean;
+            p.cholesky()
+                .map(|ch| d.dot(&ch.solve(&d)) < 1.0)
+                .unwrap_or(false)
+        });
+        if !close {
+            leaders.push(i);
+        }
+    }
+    leaders.len()
+}
+
+impl Filter {
+    /// A filter whose particles all start at the local origin, heading +x, at the configured
+    /// initial speed. `aoa` says whether the log carries angles of arrival.
+    pub fn new(cfg: FilterConfig, aoa: bool) -> Self {
+        let n = cfg.particles.max(1);
+        let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+        let particles = (0..n)
+            .map(|_| {
+                let dv: f64 = rng.sample(StandardNormal);
+                Particle {
+                    pose: Pose {
+                        x: 0.0,
+                        y: 0.0,
+                        heading: 0.0,
+                        speed: (cfg.initial_speed_mps + cfg.initial_speed_std_mps * dv).max(0.0),
+                    },
+                    log_w: -(n as f64).ln(),
+                    txs: Vec::new(),
+                    bound: Vec::new(),
+                }
+            })
+            .collect();
+        let visibility = Visibility::new(cfg.hex_size_m, cfg.visibility_prior);
+        Filter {
+            cfg,
+            aoa,
+            particles,
+            identities: Vec::new(),
+            track_identity: HashMap::new(),
+            prev_tracks: BTreeSet::new(),
+            visibility,
+            step: 0,
+            prev_t: None,
+            traveled: 0.0,
+            last_mean: Point2::origin(),
+        }
+    }
+
+    pub fn config(&self) -> &FilterConfig {
+        &self.cfg
+    }
+
+    pub fn particles(&self) -> &[Particle] {
+        &self.particles
+    }
+
+    pub fn identities(&self) -> &[Identity] {
+        &self.identities
+    }
+
+    pub fn visibility(&self) -> &Visibility {
+        &self.visibility
+    }
+
+    /// Normalized particle weights.
+    pub fn weights(&self) -> Vec<f64> {
+        let total = log_sum_exp(self.particles.iter().map(|p| p.log_w));
+        self.particles
+            .iter()
+            .map(|p| (p.log_w - total).exp())
+            .collect()
+    }
+
+    /// MAE (seed 001 eq. 27: Σ wᵢ‖p − pᵢ‖) and RMSE (√Σ wᵢ‖p − pᵢ‖²) against a true position.
+    pub fn errors(&self, true_x: f64, true_y: f64) -> (f64, f64) {
+        let w = self.weights();
+        let (mut mae, mut mse) = (0.0, 0.0);
+        for (p, w) in self.particles.iter().zip(&w) {
+            let e = (p.pose.x - true_x).hypot(p.pose.y - true_y);
+            mae += w * e;
+            mse += w * e * e;
+        }
+        (mae, mse.sqrt())
+    }
+
+    fn particle_rng(&self, i: usize) -> ChaCha8Rng {
+        let mut r = ChaCha8Rng::seed_from_u64(
+            self.cfg.seed ^ (self.step as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
+        r.set_stream(i as u64);
+        r
+    }
+
+    /// Processes one snapshot.
+    pub fn step(&mut self, snap: &Snapshot) -> StepStats {
+        let dt = self.prev_t.map(|t| (snap.t - t).max(0.0)).unwrap_or(0.0);
+        self.prev_t = Some(snap.t);
+        // Register identities of new tracks (deterministic order) before the parallel part.
+        let current: BTreeSet<u64> = snap.components.iter().map(|c| c.track).collect();
+        for c in &snap.components {
+            if !self.prev_tracks.contains(&c.track) && !self.track_identity.contains_key(&c.track) {
+                let id = self.identities.len() as u32;
+                self.identities.push(Identity {
+                    track: c.track,
+                    first_step: self.step,
+                });
+                self.track_identity.insert(c.track, id);
+            }
+        }
+        // Continuing tracks first; new ones in greedy order, strongest first.
+        let mut order: Vec<&Measurement> = snap.components.iter().collect();
+        order.sort_by(|a, b| {
+            let na = !self.prev_tracks.contains(&a.track);
+            let nb = !self.prev_tracks.contains(&b.track);
+            na.cmp(&nb)
+                .then(b.snr_db.total_cmp(&a.snr_db))
+                .then(a.track.cmp(&b.track))
+        });
+        let meas: Vec<(u64, Meas, u32)> = order
+            .iter()
+            .map(|m| {
+                (
+                    m.track,
+                    Meas::new(m, &self.cfg, self.aoa),
+                    self.track_identity[&m.track],
+                )
+            })
+            .collect();
+        let merge_now = self.step.is_multiple_of(10);
+        let rngs: Vec<ChaCha8Rng> = (0..self.particles.len())
+            .map(|i| self.particle_rng(i))
+            .collect();
+        {
+            let cfg = &self.cfg;
+            let vis = &self.visibility;
+            let speed = snap.speed;
+            let gyro = snap.gyro;
+            self.particles
+                .par_iter_mut()
+                .zip(rngs)
+                .for_each(|(p, mut rng)| {
+                    p.predict(cfg, gyro, speed, dt, &mut rng);
+                    p.bound.retain(|(t, _)| current.contains(t));
+                    let mut updated = vec![false; p.txs.len()];
+                    for (track, m, identity) in &meas {
+                        if let Some(&(_, idx)) = p.bound.iter().find(|(t, _)| t == track) {
+                            let tx = Arc::make_mut(&mut p.txs[idx as usize]);
+                            p.log_w += update_mixture(&mut tx.comps, m, &p.pose, cfg, merge_now);
+                            if !updated[idx as usize] {
+                                tx.reliability_m += p.pose.speed * dt;
+                                updated[idx as usize] = true;
+                            }
+                        } else {
+                            p.new_track(
+                                cfg,
+                                vis,
+                                *track,
+                                m,
+                                *identity,
+                                &mut rng,
+                                &mut updated,
+                                merge_now,
+                                dt,
+                            );
+                        }
+                    }
+                });
+        }
+        // Normalize, estimate, resample.
+        let w = self.weights();
+        let ess = 1.0 / w.iter().map(|x| x * x).sum::<f64>();
+        let (mut mx, mut my) = (0.0, 0.0);
+        for (p, w) in self.particles.iter().zip(&w) {
+            mx += w * p.pose.x;
+            my += w * p.pose.y;
+        }
+        let mean = Point2::new(mx, my);
+        self.traveled += (mean - self.last_mean).norm();
+        self.last_mean = mean;
+        let ntx = self
+            .particles
+            .iter()
+            .zip(&w)
+            .map(|(p, w)| w * p.txs.len() as f64)
+            .sum();
+        let ncomp = self
+            .particles
+            .iter()
+            .zip(&w)
+            .map(|(p, w)| w * p.txs.iter().map(|t| t.comps.len()).sum::<usize>() as f64)
+            .sum::<f64>();
+        self.update_visibility(&w, &mean, &current);
+        let resampled = ess < self.cfg.resample_ess_ratio * self.particles.len() as f64;
+        if resampled {
+            self.resample(&w);
+        } else {
+            let total = log_sum_exp(self.particles.iter().map(|p| p.log_w));
+            for p in &mut self.particles {
+                p.log_w -= total;
+            }
+        }
+        self.prev_tracks = current;
+        self.step += 1;
+        StepStats {
+            t: snap.t,
+            x: mx,
+            y: my,
+            ess,
+            resampled,
+            transmitters: ntx,
+            components: ncomp,
+            traveled_m: self.traveled,
+        }
+    }
+
+    /// Visibility bookkeeping along the mean track: an identity is "seen" when the track the
+    /// majority of the weight binds to it is detected.
+    fn update_visibility(&mut self, w: &[f64], mean: &Point2<f64>, current: &BTreeSet<u64>) {
+        let mut votes: BTreeMap<(u64, u32), f64> = BTreeMap::new();
+        for (p, w) in self.particles.iter().zip(w) {
+            for (t, idx) in &p.bound {
+                *votes
+                    .entry((*t, p.txs[*idx as usize].identity))
+                    .or_insert(0.0) += w;
+            }
+        }
+        let mut best: BTreeMap<u64, (u32, f64)> = BTreeMap::new();
+        for ((t, id), v) in votes {
+            let e = best.entry(t).or_insert((id, f64::NEG_INFINITY));
+            if v > e.1 {
+                *e = (id, v);
+            }
+        }
+        let seen: BTreeSet<u32> = best
+            .iter()
+            .filter(|(t, _)| current.contains(t))
+            .map(|(_, (id, _))| *id)
+            .collect();
+        for id in 0..self.identities.len() {
+            self.visibility
+                .observe(id, mean, seen.contains(&(id as u32)));
+        }
+    }
+
+    /// Systematic resampling (one uniform draw; deterministic for the seed and step).
+    fn resample(&mut self, w: &[f64]) {
+        let n = self.particles.len();
+        let mut rng =
+            ChaCha8Rng::seed_from_u64(self.cfg.seed ^ 0xA5A5_5A5A_0F0F_F0F0 ^ self.step as u64);
+        let u0: f64 = rng.random::<f64>() / n as f64;
+        let mut out = Vec::with_capacity(n);
+        let mut cum = w[0];
+        let mut j = 0;
+        for k in 0..n {
+            let u = u0 + k as f64 / n as f64;
+            while u > cum && j + 1 < n {
+                j += 1;
+                cum += w[j];
+            }
+            let mut p = self.particles[j].clone();
+            p.log_w = -(n as f64).ln();
+            out.push(p);
+        }
+        self.particles = out;
+    }
+}
+
+impl Particle {
+    /// Motion model (seed 002 eq. 16–18 in position/heading/speed form): the heading turns by
+    /// the gyro rate plus von Mises noise, the speed follows a random walk (or the measured
+    /// speed), and the position moves along the mean heading of the interval.
+    fn predict(
+        &mut self,
+        cfg: &FilterConfig,
+        gyro: f64,
+        speed: Option<f64>,
+        dt: f64,
+        rng: &mut ChaCha8Rng,
+    ) {
+        if dt <= 0.0 {
+            return;
+        }
+        let sigma_h = cfg.heading_noise_rad_per_sqrt_s * dt.sqrt();
+        let kappa = if sigma_h > 0.0 {
+            1.0 / (sigma_h * sigma_h)
+        } else {
+            f64::INFINITY
+        };
+        let mu = self.pose.heading + gyro * dt;
+        let h_new = if kappa.is_finite() {
+            vonmises::sample(mu, kappa, rng)
+        } else {
+            wrap_angle(mu)
+        };
+        let n: f64 = rng.sample(StandardNormal);
+        self.pose.speed = match speed {
+            Some(v) => (v + cfg.speed_measurement_std_mps * n).max(0.0),
+            None => (self.pose.speed + cfg.speed_noise_mps_per_sqrt_s * dt.sqrt() * n).max(0.0),
+        };
+        let h_mid = self.pose.heading + 0.5 * wrap_angle(h_new - self.pose.heading);
+        self.pose.x += self.pose.speed * dt * h_mid.cos();
+        self.pose.y += self.pose.speed * dt * h_mid.sin();
+        self.pose.heading = h_new;
+    }
+
+    /// A track this particle has not bound yet: associate it with an old transmitter or
+    /// start a new one (seed 002 §5, seed 001 eq. 19 with the visibility factor).
+    #[allow(clippy::too_many_arguments)]
+    fn new_track(
+        &mut self,
+        cfg: &FilterConfig,
+        vis: &Visibility,
+        track: u64,
+        m: &Meas,
+        identity: u32,
+        rng: &mut ChaCha8Rng,
+        updated: &mut Vec<bool>,
+        merge_now: bool,
+        dt: f64,
+    ) {
+        let ln_p0 = cfg.association_p0.ln();
+        let mut chosen: Option<usize> = None;
+        if cfg.association != Association::Off {
+            let cell = vis.grid().cell_of(&Point2::new(self.pose.x, self.pose.y));
+            let (sd, sa) = m.sigmas();
+            let mut cands: Vec<(usize, f64)> = Vec::new();
+            for (idx, tx) in self.txs.iter().enumerate() {
+                if self.bound.iter().any(|(_, b)| *b as usize == idx) {
+                    continue;
+                }
+                if !gate(tx, &self.pose, m, sd, sa) {
+                    continue;
+                }
+                let ll = log_sum_exp(tx.comps.iter().map(|c| {
+                    c.weight.ln()
+                        + m.log_likelihood(&self.pose, &c.g)
+                            .unwrap_or(f64::NEG_INFINITY)
+                }));
+                let pv = vis.probability(tx.identity as usize, cell);
+                cands.push((idx, ll + pv.ln()));
+            }
+            match cfg.association {
+                Association::Ml => {
+                    let best = cands
+                        .iter()
+                        .cloned()
+                        .fold((usize::MAX, ln_p0), |a, b| if b.1 > a.1 { b } else { a });
+                    self.log_w += best.1;
+                    if best.0 != usize::MAX {
+                        chosen = Some(best.0);
+                    }
+                }
+                Association::Das => {
+                    let total =
+                        log_sum_exp(cands.iter().map(|c| c.1).chain(std::iter::once(ln_p0)));
+                    self.log_w += total;
+                    let u: f64 = rng.random();
+                    let mut acc = 0.0;
+                    for (idx, l) in &cands {
+                        acc += (l - total).exp();
+                        if u < acc {
+                            chosen = Some(*idx);
+                            break;
+                        }
+                    }
+                }
+                Association::Off => {}
+            }
+        }
+        match chosen {
+            Some(idx) => {
+                self.bound.push((track, idx as u32));
+                let tx = Arc::make_mut(&mut self.txs[idx]);
+                // The association factor already carries the likelihood; update the state only.
+                let _ = update_mixture(&mut tx.comps, m, &self.pose, cfg, merge_now);
+                if !updated[idx] {
+                    tx.reliability_m += self.pose.speed * dt;
+                    updated[idx] = true;
+                }
+            }
+            None => {
+                let (sd, sa) = m.sigmas();
+                let comps = initialize(cfg, &self.pose, m.d(), m.aoa(), sd, sa);
+                if cfg.association == Association::Off {
+                    self.log_w += ln_p0;
+                }
+                self.txs.push(Arc::new(TxState {
+                    identity,
+                    comps,
+                    reliability_m: 0.0,
+                }));
+                self.bound.push((track, (self.txs.len() - 1) as u32));
+                updated.push(true);
+            }
+        }
+    }
+}
+
+/// Cheap gate before the cubature likelihood: the measured distance (and angle) must lie
+/// within 5σ of what the transmitter's mixture mean predicts, σ including its spread.
+fn gate(tx: &TxState, pose: &Pose, m: &Meas, sd: f64, sa: f64) -> bool {
+    let Some((mean, cov)) = mixture::moments(
+        &tx.comps
+            .iter()
+            .map(|c| Component::new(c.weight, c.g.mean, c.g.cov()))
+            .collect::<Vec<_>>(),
+    ) else {
+        return false;
+    };
+    let spread = cov.trace().max(0.0).sqrt();
+    let (dx, dy) = (mean.x - pose.x, mean.y - pose.y);
+    let range = dx.hypot(dy);
+    let d_pred = range + mean.z;
+    if (d_pred - m.d()).abs() > 5.0 * (spread + sd) + 1.0 {
+        return false;
+    }
+    if let Some(a) = m.aoa() {
+        let a_pred = wrap_angle(dy.atan2(dx) - pose.heading);
+        let tol = 5.0 * (sa + (spread / range.max(1.0)).min(std::f64::consts::PI)) + 0.1;
+        if wrap_angle(a - a_pred).abs() > tol {
+            return false;
+        }
+    }
+    true
+}

@@ -1,0 +1,86 @@
+//! Running the filter over a measurement log, with ground truth when it is known.
+
+use crate::eval::{TrackRow, TruthCols};
+use crate::filter::export::export_map;
+use crate::filter::{Filter, FilterConfig};
+use anyhow::Result;
+use echomap_shared::TransmitterMap;
+use echomap_shared::log::{GroundTruth, MeasurementLog};
+use indicatif::{ProgressBar, ProgressStyle};
+
+#[derive(Debug)]
+pub struct RunOutput {
+    pub rows: Vec<TrackRow>,
+    pub map: TransmitterMap,
+    pub filter: Filter,
+}
+
+/// Runs the filter over every snapshot. With `truth`, rows carry the errors; the travelled
+/// distance is then the true one (so that curves of several runs line up).
+pub fn run_filter(
+    log: &MeasurementLog,
+    truth: Option<&GroundTruth>,
+    cfg: FilterConfig,
+    progress: bool,
+) -> Result<RunOutput> {
+    if let Some(t) = truth {
+        anyhow::ensure!(
+            t.poses.len() == log.snapshots.len(),
+            "ground truth has {} poses but the log {} snapshots",
+            t.poses.len(),
+            log.snapshots.len()
+        );
+    }
+    let mut filter = Filter::new(cfg, log.header.aoa);
+    let bar = if progress {
+        let b = ProgressBar::new(log.snapshots.len() as u64);
+        b.set_style(
+            ProgressStyle::with_template(
+                "{prefix} [{elapsed_precise}] {wide_bar} {pos}/{len} snapshots ({eta})",
+            )
+            .expect("static template"),
+        );
+        b.set_prefix("filter");
+        b
+    } else {
+        ProgressBar::hidden()
+    };
+    let mut rows = Vec::with_capacity(log.snapshots.len());
+    let mut true_traveled = 0.0;
+    for (k, snap) in log.snapshots.iter().enumerate() {
+        let stats = filter.step(snap);
+        let truth_cols = truth.map(|t| {
+            let p = &t.poses[k];
+            if k > 0 {
+                let q = &t.poses[k - 1];
+                true_traveled += (p.x - q.x).hypot(p.y - q.y);
+            }
+            let (mae_m, rmse_m) = filter.errors(p.x, p.y);
+            TruthCols {
+                true_x: p.x,
+                true_y: p.y,
+                mae_m,
+                rmse_m,
+                err_m: (stats.x - p.x).hypot(stats.y - p.y),
+            }
+        });
+        rows.push(TrackRow {
+            t: stats.t,
+            x: stats.x,
+            y: stats.y,
+            traveled_m: if truth.is_some() {
+                true_traveled
+            } else {
+                stats.traveled_m
+            },
+            truth: truth_cols,
+            ess: stats.ess,
+            transmitters: stats.transmitters,
+            components: stats.components,
+        });
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let map = export_map(&filter)?;
+    Ok(RunOutput { rows, map, filter })
+}
