@@ -430,13 +430,11 @@ pub fn draw_error(rows: &[crate::eval::TrackRow], out: &Path) -> Result<()> {
     )
 }
 
+/// A labelled curve: (label, colour, points).
+pub type Curve = (String, RGBColor, Vec<(f64, f64)>);
+
 /// A line chart of several labelled curves over travelled distance.
-pub fn draw_curves(
-    title: &str,
-    y_desc: &str,
-    curves: &[(String, RGBColor, Vec<(f64, f64)>)],
-    out: &Path,
-) -> Result<()> {
+pub fn draw_curves(title: &str, y_desc: &str, curves: &[Curve], out: &Path) -> Result<()> {
     let x_max = curves
         .iter()
         .flat_map(|c| c.2.iter().map(|p| p.0))
