@@ -27,6 +27,12 @@ pub enum Command {
     /// Run single-user Channel-SLAM on a log (or a freshly simulated track); writes map.json,
     /// track.csv and plots into --out.
     Run(RunArgs),
+    /// Run M seeds of a scenario track (simulate + filter) and report mean and 5th/95th
+    /// percentile error curves against travelled distance (seed 002 Fig. 8).
+    Evaluate(EvaluateArgs),
+    /// Convert a real dataset into a measurement log + ground truth.
+    #[command(subcommand)]
+    Import(ImportCommand),
     /// The main job for now: simulate the indoor reference track and render the scenario and
     /// the channel-estimator output into --out (default out/demo).
     Demo(DemoArgs),
@@ -143,6 +149,54 @@ pub struct RunArgs {
 }
 
 #[derive(Debug, Args)]
+pub struct EvaluateArgs {
+    /// built-in scenario or JSON file
+    #[arg(long, default_value = "urban")]
+    pub scenario: String,
+    #[arg(long, default_value = "reference")]
+    pub track: String,
+    #[arg(long)]
+    pub toa_only: bool,
+    /// number of seeds (runs)
+    #[arg(long, default_value_t = 10)]
+    pub seeds: u64,
+    /// first seed; runs use first-seed, first-seed+1, …
+    #[arg(long, default_value_t = 1)]
+    pub first_seed: u64,
+    /// association methods to compare (comma-separated: off, ml, das); overrides --association
+    #[arg(long, value_delimiter = ',', value_enum)]
+    pub compare: Vec<Association>,
+    #[command(flatten)]
+    pub filter: FilterArgs,
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum ImportCommand {
+    /// UTIAS MRCLAM: `import mrclam DIR --robot N --out DIR`
+    Mrclam(MrclamArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct MrclamArgs {
+    /// dataset directory (Barcodes.dat, Landmark_Groundtruth.dat, RobotN_*.dat)
+    pub dir: PathBuf,
+    /// robot 1–5
+    #[arg(long)]
+    pub robot: u32,
+    /// start a new track id when a landmark has not been seen for this long (s)
+    #[arg(long, default_value_t = 5.0)]
+    pub track_gap: f64,
+    /// snapshot rate (Hz)
+    #[arg(long, default_value_t = 10.0)]
+    pub rate: f64,
+    /// output directory (log.jsonl, truth.json)
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
 pub struct DemoArgs {
     /// seed of the simulation
     #[arg(long, default_value_t = 1)]
@@ -244,9 +298,22 @@ pub fn run(cli: Cli) -> Result<()> {
             let cfg = a.filter.config(a.seed, initial_speed)?;
             let out = crate::run::run_filter(&log, truth.as_ref(), cfg, !a.quiet)?;
             crate::output::write_run(&out, truth.as_ref(), &a.out)?;
-            crate::output::print_summary(&out, truth.as_ref());
+            crate::output::print_summary(&out, truth.as_ref(), &log);
             Ok(())
         }
+        Command::Import(ImportCommand::Mrclam(a)) => {
+            let opts = crate::mrclam::ImportOptions {
+                robot: a.robot,
+                track_gap_s: a.track_gap,
+                rate_hz: a.rate,
+                snr_db: 20.0,
+            };
+            let (log, truth) = crate::mrclam::import(&a.dir, opts)?;
+            write_sim_output(&crate::sim::SimOutput { log, truth }, &a.out)?;
+            println!("imported MRCLAM robot {} → {}", a.robot, a.out.display());
+            Ok(())
+        }
+        Command::Evaluate(a) => crate::evaluate::evaluate(&a),
         Command::Demo(a) => {
             let scenario = builtin::indoor();
             let out = simulate(

@@ -3,7 +3,9 @@
 
 pub mod cli;
 pub mod eval;
+pub mod evaluate;
 pub mod filter;
+pub mod mrclam;
 pub mod output;
 pub mod plot;
 pub mod run;

@@ -24,7 +24,11 @@ pub fn write_run(out: &RunOutput, truth: Option<&GroundTruth>, dir: &Path) -> Re
     Ok(())
 }
 
-pub fn print_summary(out: &RunOutput, truth: Option<&GroundTruth>) {
+pub fn print_summary(
+    out: &RunOutput,
+    truth: Option<&GroundTruth>,
+    log: &echomap_shared::log::MeasurementLog,
+) {
     let last = out.rows.last();
     println!(
         "{} snapshots, {:.1} m travelled, {} transmitters in the map",
@@ -55,5 +59,18 @@ pub fn print_summary(out: &RunOutput, truth: Option<&GroundTruth>) {
             n_est,
             n_true
         );
+        if log.header.speed {
+            let dr = crate::mrclam::dead_reckoning(log);
+            let e: Vec<f64> = dr
+                .iter()
+                .zip(&truth.poses)
+                .map(|(p, t)| (p.0 - t.x).hypot(p.1 - t.y))
+                .collect();
+            println!(
+                "dead reckoning (gyro + speed only): mean error {:.2} m, final {:.2} m",
+                e.iter().sum::<f64>() / e.len().max(1) as f64,
+                e.last().copied().unwrap_or(f64::NAN)
+            );
+        }
     }
 }

@@ -10,6 +10,20 @@ use std::f64::consts::PI;
 
 /// Wraps an angle to (−π, π].
 pub fn wrap_angle(angle_rad: f64) -> f64 {
+    // Fast path: the hot callers pass angles within one turn of the range.
+    if angle_rad > -PI && angle_rad <= PI {
+        return angle_rad;
+    }
+    if angle_rad > -3.0 * PI && angle_rad <= 3.0 * PI {
+        let a = if angle_rad > PI {
+            angle_rad - 2.0 * PI
+        } else {
+            angle_rad + 2.0 * PI
+        };
+        if a > -PI && a <= PI {
+            return a;
+        }
+    }
     let mut a = angle_rad.rem_euclid(2.0 * PI);
     if a > PI {
         a -= 2.0 * PI;

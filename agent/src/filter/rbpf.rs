@@ -71,7 +71,6 @@ pub struct Filter {
     particles: Vec<Particle>,
     identities: Vec<Identity>,
     track_identity: HashMap<u64, u32>,
-    prev_tracks: BTreeSet<u64>,
     visibility: Visibility,
     step: usize,
     prev_t: Option<f64>,
@@ -290,7 +289,6 @@ impl Filter {
             particles,
             identities: Vec::new(),
             track_identity: HashMap::new(),
-            prev_tracks: BTreeSet::new(),
             visibility,
             step: 0,
             prev_t: None,
@@ -350,8 +348,10 @@ impl Filter {
         self.prev_t = Some(snap.t);
         // Register identities of new tracks (deterministic order) before the parallel part.
         let current: BTreeSet<u64> = snap.components.iter().map(|c| c.track).collect();
+        let mut fresh: BTreeSet<u64> = BTreeSet::new();
         for c in &snap.components {
-            if !self.prev_tracks.contains(&c.track) && !self.track_identity.contains_key(&c.track) {
+            if !self.track_identity.contains_key(&c.track) {
+                fresh.insert(c.track);
                 let id = self.identities.len() as u32;
                 self.identities.push(Identity {
                     track: c.track,
@@ -360,11 +360,12 @@ impl Filter {
                 self.track_identity.insert(c.track, id);
             }
         }
-        // Continuing tracks first; new ones in greedy order, strongest first.
+        // Known tracks first; new ones in greedy order, strongest first. A track id always
+        // names the same transmitter, also after gaps in its detection (sparse logs).
         let mut order: Vec<&Measurement> = snap.components.iter().collect();
         order.sort_by(|a, b| {
-            let na = !self.prev_tracks.contains(&a.track);
-            let nb = !self.prev_tracks.contains(&b.track);
+            let na = fresh.contains(&a.track);
+            let nb = fresh.contains(&b.track);
             na.cmp(&nb)
                 .then(b.snr_db.total_cmp(&a.snr_db))
                 .then(a.track.cmp(&b.track))
@@ -407,6 +408,7 @@ impl Filter {
                             p.new_track(
                                 cfg,
                                 vis,
+                                &current,
                                 *track,
                                 m,
                                 *identity,
@@ -452,7 +454,6 @@ impl Filter {
                 p.log_w -= total;
             }
         }
-        self.prev_tracks = current;
         self.step += 1;
         StepStats {
             t: snap.t,
@@ -471,7 +472,7 @@ impl Filter {
     fn update_visibility(&mut self, w: &[f64], mean: &Point2<f64>, current: &BTreeSet<u64>) {
         let mut votes: BTreeMap<(u64, u32), f64> = BTreeMap::new();
         for (p, w) in self.particles.iter().zip(w) {
-            for (t, idx) in &p.bound {
+            for (t, idx) in p.bound.iter().filter(|(t, _)| current.contains(t)) {
                 *votes
                     .entry((*t, p.txs[*idx as usize].identity))
                     .or_insert(0.0) += w;
@@ -563,6 +564,7 @@ impl Particle {
         &mut self,
         cfg: &FilterConfig,
         vis: &Visibility,
+        current: &BTreeSet<u64>,
         track: u64,
         m: &Meas,
         identity: u32,
@@ -578,7 +580,12 @@ impl Particle {
             let (sd, sa) = m.sigmas();
             let mut cands: Vec<(usize, f64)> = Vec::new();
             for (idx, tx) in self.txs.iter().enumerate() {
-                if self.bound.iter().any(|(_, b)| *b as usize == idx) {
+                // only transmitters not detected right now are candidates ("old", seed 002 §5)
+                if self
+                    .bound
+                    .iter()
+                    .any(|(t, b)| *b as usize == idx && current.contains(t))
+                {
                     continue;
                 }
                 if !gate(tx, &self.pose, m, sd, sa) {

@@ -56,7 +56,7 @@ pub fn tria<const C: usize>(a: &SMatrix<f64, 3, C>) -> Matrix3<f64> {
             if y == 0.0 {
                 continue;
             }
-            let r = x.hypot(y);
+            let r = (x * x + y * y).sqrt();
             let (c, s) = (x / r, y / r);
             for row in i..3 {
                 let (u, v) = (m[(row, i)], m[(row, j)]);

@@ -1,0 +1,198 @@
+//! `echomap-agent evaluate`: Monte-Carlo evaluation over seeds, as in seed 002 Fig. 8 and
+//! seed 001 Fig. 5 — mean MAE, the RMSE over runs of the weighted-mean estimate, and 5th/95th
+//! percentiles, per snapshot against the (true) travelled distance.
+
+use crate::cli::{EvaluateArgs, ScenarioSource, load_scenario};
+use crate::eval::percentile;
+use crate::run::run_filter;
+use crate::sim::simulate::{SimOptions, simulate};
+use anyhow::Result;
+use indicatif::{ProgressBar, ProgressStyle};
+use plotters::style::RGBColor;
+use serde::Serialize;
+
+/// Error curves of one configuration over several runs.
+#[derive(Debug, Clone, Serialize)]
+pub struct Curves {
+    pub label: String,
+    pub traveled_m: Vec<f64>,
+    pub mae_mean: Vec<f64>,
+    pub mae_p5: Vec<f64>,
+    pub mae_p95: Vec<f64>,
+    /// √(mean over runs of ‖p̂ − p‖²)
+    pub rmse: Vec<f64>,
+    pub final_mae: Vec<f64>,
+    pub mean_mae: Vec<f64>,
+    pub wall_s: Vec<f64>,
+}
+
+impl Curves {
+    /// Builds the curves from per-run (traveled, mae, err) series of equal length.
+    pub fn from_runs(label: String, runs: &[Vec<(f64, f64, f64)>], wall_s: Vec<f64>) -> Self {
+        let n = runs.iter().map(|r| r.len()).min().unwrap_or(0);
+        let col = |k: usize, f: &dyn Fn(&(f64, f64, f64)) -> f64| {
+            runs.iter().map(|r| f(&r[k])).collect::<Vec<f64>>()
+        };
+        let mut c = Curves {
+            label,
+            traveled_m: Vec::with_capacity(n),
+            mae_mean: Vec::with_capacity(n),
+            mae_p5: Vec::with_capacity(n),
+            mae_p95: Vec::with_capacity(n),
+            rmse: Vec::with_capacity(n),
+            final_mae: runs.iter().filter_map(|r| r.last().map(|x| x.1)).collect(),
+            mean_mae: runs
+                .iter()
+                .map(|r| r.iter().map(|x| x.1).sum::<f64>() / r.len().max(1) as f64)
+                .collect(),
+            wall_s,
+        };
+        #[allow(clippy::needless_range_loop)] // k indexes every run at once
+        for k in 0..n {
+            let mae = col(k, &|x| x.1);
+            let err = col(k, &|x| x.2);
+            c.traveled_m.push(runs[0][k].0);
+            c.mae_mean.push(mae.iter().sum::<f64>() / mae.len() as f64);
+            c.mae_p5.push(percentile(&mae, 0.05));
+            c.mae_p95.push(percentile(&mae, 0.95));
+            c.rmse
+                .push((err.iter().map(|e| e * e).sum::<f64>() / err.len() as f64).sqrt());
+        }
+        c
+    }
+
+    pub fn csv(&self) -> String {
+        let mut s = String::from("traveled_m,mae_mean_m,mae_p5_m,mae_p95_m,rmse_m\n");
+        for k in 0..self.traveled_m.len() {
+            s.push_str(&format!(
+                "{},{},{},{},{}\n",
+                self.traveled_m[k], self.mae_mean[k], self.mae_p5[k], self.mae_p95[k], self.rmse[k]
+            ));
+        }
+        s
+    }
+
+    pub fn max(v: &[f64]) -> f64 {
+        v.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
+    }
+}
+
+const COLORS: [RGBColor; 6] = [
+    RGBColor(0, 0, 220),
+    RGBColor(220, 0, 0),
+    RGBColor(0, 150, 0),
+    RGBColor(230, 120, 0),
+    RGBColor(120, 0, 160),
+    RGBColor(0, 150, 160),
+];
+
+/// Writes `<label>.csv` per configuration, `summary.json`, and `error.png/svg`,
+/// `rmse.png/svg` into `dir`.
+pub fn write_curves(all: &[Curves], title: &str, dir: &std::path::Path) -> Result<()> {
+    std::fs::create_dir_all(dir)?;
+    let mut mae_plot = Vec::new();
+    let mut rmse_plot = Vec::new();
+    for (i, c) in all.iter().enumerate() {
+        std::fs::write(dir.join(format!("{}.csv", c.label)), c.csv())?;
+        let color = COLORS[i % COLORS.len()];
+        let pts = |v: &[f64]| {
+            c.traveled_m
+                .iter()
+                .copied()
+                .zip(v.iter().copied())
+                .collect::<Vec<_>>()
+        };
+        mae_plot.push((format!("{} mean MAE", c.label), color, pts(&c.mae_mean)));
+        mae_plot.push((format!("{} p95", c.label), color, pts(&c.mae_p95)));
+        mae_plot.push((format!("{} p5", c.label), color, pts(&c.mae_p5)));
+        rmse_plot.push((format!("{} RMSE", c.label), color, pts(&c.rmse)));
+    }
+    std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(all)?)?;
+    for ext in ["png", "svg"] {
+        crate::plot::draw_curves(
+            &format!("{title}: MAE (mean, 5th/95th percentiles)"),
+            "MAE (m)",
+            &mae_plot,
+            &dir.join(format!("error.{ext}")),
+        )?;
+        crate::plot::draw_curves(
+            &format!("{title}: RMSE over runs"),
+            "RMSE (m)",
+            &rmse_plot,
+            &dir.join(format!("rmse.{ext}")),
+        )?;
+    }
+    Ok(())
+}
+
+pub fn evaluate(a: &EvaluateArgs) -> Result<()> {
+    let scenario = load_scenario(&ScenarioSource {
+        scenario: a.scenario.clone(),
+        toa_only: a.toa_only,
+    })?;
+    let methods = if a.compare.is_empty() {
+        vec![a.filter.association]
+    } else {
+        a.compare.clone()
+    };
+    let bar = ProgressBar::new(a.seeds * methods.len() as u64);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "evaluate [{elapsed_precise}] {wide_bar} {pos}/{len} runs {msg}",
+        )
+        .expect("static template"),
+    );
+    let mut all = Vec::new();
+    for method in methods {
+        let mut runs = Vec::new();
+        let mut wall = Vec::new();
+        for seed in a.first_seed..a.first_seed + a.seeds {
+            bar.set_message(format!("{method:?} seed {seed}"));
+            let sim = simulate(
+                &scenario,
+                &a.track,
+                SimOptions {
+                    seed,
+                    toa_only: a.toa_only,
+                },
+            )?;
+            let v0 = sim.truth.poses.first().map(|p| p.speed_mps).unwrap_or(0.0);
+            let mut cfg = a.filter.config(seed, v0)?;
+            cfg.association = method;
+            let start = std::time::Instant::now();
+            let out = run_filter(&sim.log, Some(&sim.truth), cfg, false)?;
+            wall.push(start.elapsed().as_secs_f64());
+            runs.push(
+                out.rows
+                    .iter()
+                    .filter_map(|r| r.truth.map(|t| (r.traveled_m, t.mae_m, t.err_m)))
+                    .collect::<Vec<_>>(),
+            );
+            bar.inc(1);
+        }
+        let label = format!("{method:?}").to_lowercase();
+        let c = Curves::from_runs(label, &runs, wall);
+        println!(
+            "{:>4}: max RMSE {:.2} m, max mean-MAE {:.2} m, final MAE median {:.2} m (5th {:.2}, 95th {:.2}), wall {:.1} s/run",
+            c.label,
+            Curves::max(&c.rmse),
+            Curves::max(&c.mae_mean),
+            percentile(&c.final_mae, 0.5),
+            percentile(&c.final_mae, 0.05),
+            percentile(&c.final_mae, 0.95),
+            c.wall_s.iter().sum::<f64>() / c.wall_s.len().max(1) as f64
+        );
+        all.push(c);
+    }
+    bar.finish_and_clear();
+    write_curves(
+        &all,
+        &format!(
+            "{} / {}, {} runs, {} particles",
+            scenario.name, a.track, a.seeds, a.filter.particles
+        ),
+        &a.out,
+    )?;
+    println!("wrote {}", a.out.display());
+    Ok(())
+}
