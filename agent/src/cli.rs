@@ -86,12 +86,21 @@ pub struct FilterArgs {
     /// speed random walk of the motion model (m/s/√s)
     #[arg(long, default_value_t = FilterConfig::default().speed_noise_mps_per_sqrt_s)]
     pub speed_noise: f64,
+    /// std of a measured speed (m/s), for logs that carry speed
+    #[arg(long, default_value_t = FilterConfig::default().speed_measurement_std_mps)]
+    pub speed_std: f64,
     /// distance noise floor the filter assumes (m)
     #[arg(long, default_value_t = NoiseModel::default().distance_floor_m)]
     pub distance_std: f64,
     /// AoA noise floor the filter assumes (rad)
     #[arg(long, default_value_t = NoiseModel::default().aoa_floor_rad)]
     pub aoa_std: f64,
+    /// likelihood level of "no association" (1/(m·rad); ToA-only 1/m): lower associates more readily
+    #[arg(long, default_value_t = FilterConfig::default().association_p0)]
+    pub association_p0: f64,
+    /// χ² gate (squared Mahalanobis distance) of association candidates
+    #[arg(long, default_value_t = FilterConfig::default().association_gate)]
+    pub association_gate: f64,
 }
 
 impl FilterArgs {
@@ -103,6 +112,7 @@ impl FilterArgs {
             other => bail!("--b-prior must be `uniform` or `zero`, got {other:?}"),
         };
         anyhow::ensure!(self.particles >= 1, "--particles must be at least 1");
+        anyhow::ensure!(self.association_p0 > 0.0, "--association-p0 must be > 0");
         Ok(FilterConfig {
             particles: self.particles,
             seed,
@@ -110,7 +120,10 @@ impl FilterArgs {
             b_prior,
             initial_speed_mps: self.initial_speed.unwrap_or(initial_speed),
             heading_noise_rad_per_sqrt_s: self.heading_noise,
+            association_p0: self.association_p0,
+            association_gate: self.association_gate,
             speed_noise_mps_per_sqrt_s: self.speed_noise,
+            speed_measurement_std_mps: self.speed_std,
             noise: NoiseModel {
                 distance_floor_m: self.distance_std,
                 aoa_floor_rad: self.aoa_std,

@@ -232,6 +232,7 @@ pub fn import(dir: &Path, opts: ImportOptions) -> Result<(MeasurementLog, Ground
         snapshot_rate_hz: opts.rate_hz,
         aoa: true,
         speed: true,
+        track_hold_s: Some(opts.track_gap_s),
         source: Some(format!(
             "UTIAS MRCLAM robot {} (track gap {} s)",
             opts.robot, opts.track_gap_s

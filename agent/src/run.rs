@@ -31,6 +31,8 @@ pub fn run_filter(
             log.snapshots.len()
         );
     }
+    let mut cfg = cfg;
+    cfg.track_hold_s = log.header.track_hold_s.unwrap_or(0.0);
     let mut filter = Filter::new(cfg, log.header.aoa);
     let bar = if progress {
         let b = ProgressBar::new(log.snapshots.len() as u64);

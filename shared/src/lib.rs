@@ -4,6 +4,7 @@
 //! Both the agent and the map server build on it, so anything exchanged between them is
 //! defined (and validated) here.
 
+pub mod fastmath;
 pub mod geometry;
 pub mod hexgrid;
 pub mod log;

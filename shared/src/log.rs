@@ -36,6 +36,11 @@ pub struct LogHeader {
     pub aoa: bool,
     #[serde(default)]
     pub speed: bool,
+    /// How long a track stays alive without being detected (s): logs whose detections are
+    /// sparse (camera landmarks) keep a track id across short gaps. Absent: a track is alive
+    /// only in the snapshots that report it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub track_hold_s: Option<f64>,
     /// Free text: where the log came from (simulator scenario/track/seed, dataset, device).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub source: Option<String>,
@@ -106,6 +111,11 @@ impl MeasurementLog {
         }
         if !(header.snapshot_rate_hz.is_finite() && header.snapshot_rate_hz > 0.0) {
             return Err(bad(hl + 1, "snapshot_rate_hz must be a positive number"));
+        }
+        if let Some(h) = header.track_hold_s
+            && !(h.is_finite() && h >= 0.0)
+        {
+            return Err(bad(hl + 1, "track_hold_s must be a finite number ≥ 0"));
         }
         let mut snapshots = Vec::new();
         let mut last_t = f64::NEG_INFINITY;

@@ -89,10 +89,16 @@ pub struct FilterConfig {
     pub resample_ess_ratio: f64,
     /// likelihood of "no association" (density in 1/(m·rad); ToA-only: 1/m) — p₀ of seed 002 §5
     pub association_p0: f64,
+    /// squared Mahalanobis gate of an association candidate (χ², default 11.8 ≈ 99.7 % for 2 dof)
+    pub association_gate: f64,
+    /// only old transmitters whose position std (√tr P_xy) is at most this are candidates (m)
+    pub association_max_spread_m: f64,
     /// hexagon circumradius of the visibility grid (m)
     pub hex_size_m: f64,
     /// Beta prior pseudo-counts (ν, ν̄) of seed 001 eq. 12
     pub visibility_prior: (f64, f64),
+    /// a track stays alive this long without detection (s); set from the log header
+    pub track_hold_s: f64,
     /// most components per transmitter in the exported map
     pub export_max_components: usize,
 }
@@ -116,8 +122,11 @@ impl Default for FilterConfig {
             max_components: 12,
             resample_ess_ratio: 0.5,
             association_p0: 0.02,
+            association_gate: 11.8,
+            association_max_spread_m: 3.0,
             hex_size_m: 2.0,
             visibility_prior: (1.0, 1.0),
+            track_hold_s: 0.0,
             export_max_components: 4,
         }
     }

@@ -3,6 +3,7 @@
 
 use super::config::{BPrior, FilterConfig};
 use super::srckf::SqrtGaussian;
+use echomap_shared::fastmath::fast_atan2;
 use echomap_shared::wrap_angle;
 use nalgebra::{Matrix3, Vector1, Vector2, Vector3};
 
@@ -23,7 +24,7 @@ pub fn h_toa_aoa(pose: &Pose, x: &Vector3<f64>) -> Vector2<f64> {
     // several times slower (it dominated the profile).
     Vector2::new(
         (dx * dx + dy * dy).sqrt() + x.z,
-        wrap_angle(dy.atan2(dx) - pose.heading),
+        wrap_angle(fast_atan2(dy, dx) - pose.heading),
     )
 }
 

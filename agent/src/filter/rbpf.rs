@@ -71,6 +71,8 @@ pub struct Filter {
     particles: Vec<Particle>,
     identities: Vec<Identity>,
     track_identity: HashMap<u64, u32>,
+    /// time each track was last detected
+    last_seen: HashMap<u64, f64>,
     visibility: Visibility,
     step: usize,
     prev_t: Option<f64>,
@@ -289,6 +291,7 @@ impl Filter {
             particles,
             identities: Vec::new(),
             track_identity: HashMap::new(),
+            last_seen: HashMap::new(),
             visibility,
             step: 0,
             prev_t: None,
@@ -347,7 +350,17 @@ impl Filter {
         let dt = self.prev_t.map(|t| (snap.t - t).max(0.0)).unwrap_or(0.0);
         self.prev_t = Some(snap.t);
         // Register identities of new tracks (deterministic order) before the parallel part.
-        let current: BTreeSet<u64> = snap.components.iter().map(|c| c.track).collect();
+        for c in &snap.components {
+            self.last_seen.insert(c.track, snap.t);
+        }
+        // Tracks alive now: detected within the log's hold time (this snapshot by default).
+        let hold = self.cfg.track_hold_s + 1e-9;
+        let current: BTreeSet<u64> = self
+            .last_seen
+            .iter()
+            .filter(|(_, t)| snap.t - **t <= hold)
+            .map(|(k, _)| *k)
+            .collect();
         let mut fresh: BTreeSet<u64> = BTreeSet::new();
         for c in &snap.components {
             if !self.track_identity.contains_key(&c.track) {

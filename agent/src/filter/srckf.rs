@@ -101,7 +101,8 @@ pub fn predict<const M: usize>(
         / POINTS as f64;
     let z_hat = z0 + mean_res;
     let scale = 1.0 / (POINTS as f64).sqrt();
-    let z_dev = SMatrix::<f64, M, POINTS>::from_fn(|i, j| residual(&zs[j], &z_hat)[i] * scale);
+    let devs: [SVector<f64, M>; POINTS] = std::array::from_fn(|j| residual(&zs[j], &z_hat) * scale);
+    let z_dev = SMatrix::<f64, M, POINTS>::from_fn(|i, j| devs[j][i]);
     let x_dev = SMatrix::<f64, 3, POINTS>::from_fn(|i, j| (pts[j][i] - g.mean[i]) * scale);
     let pzz = z_dev * z_dev.transpose() + r;
     Predicted {
@@ -114,11 +115,22 @@ pub fn predict<const M: usize>(
 
 /// Log of `N(res; 0, P)`; None when P is not positive definite.
 pub fn log_normal<const M: usize>(res: &SVector<f64, M>, p: &SMatrix<f64, M, M>) -> Option<f64> {
+    log_normal_and_mahalanobis(res, p).map(|x| x.0)
+}
+
+/// `(ln N(res; 0, P), resᵀP⁻¹res)`; None when P is not positive definite.
+pub fn log_normal_and_mahalanobis<const M: usize>(
+    res: &SVector<f64, M>,
+    p: &SMatrix<f64, M, M>,
+) -> Option<(f64, f64)> {
     let chol = p.cholesky()?;
     let l = chol.l();
     let log_det: f64 = 2.0 * (0..M).map(|i| l[(i, i)].ln()).sum::<f64>();
-    let sol = chol.solve(res);
-    Some(-0.5 * (res.dot(&sol) + log_det + M as f64 * (2.0 * std::f64::consts::PI).ln()))
+    let d2 = res.dot(&chol.solve(res));
+    Some((
+        -0.5 * (d2 + log_det + M as f64 * (2.0 * std::f64::consts::PI).ln()),
+        d2,
+    ))
 }
 
 /// Result of a measurement update of one component.

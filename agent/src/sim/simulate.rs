@@ -308,6 +308,7 @@ pub fn simulate(
         snapshot_rate_hz: scenario.snapshot_rate_hz,
         aoa,
         speed: false,
+        track_hold_s: None,
         source: Some(format!(
             "echomap-agent simulate: scenario {} track {} seed {}",
             scenario.name, track.name, opts.seed
