@@ -8,6 +8,37 @@ use std::path::Path;
 
 pub fn write_run(out: &RunOutput, truth: Option<&GroundTruth>, dir: &Path) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    if let Some(truth) = truth {
+        let mae: Vec<f64> = out
+            .rows
+            .iter()
+            .filter_map(|r| r.truth.map(|t| t.mae_m))
+            .collect();
+        let rmse: Vec<f64> = out
+            .rows
+            .iter()
+            .filter_map(|r| r.truth.map(|t| t.rmse_m))
+            .collect();
+        let (ospa, n_est, n_true) = map_ospa(&out.map, truth);
+        let summary = serde_json::json!({
+            "snapshots": out.rows.len(),
+            "traveled_m": out.rows.last().map(|r| r.traveled_m),
+            "transmitters": out.map.len(),
+            "mae_final_m": mae.last(),
+            "mae_mean_m": mae.iter().sum::<f64>() / mae.len().max(1) as f64,
+            "mae_max_m": mae.iter().cloned().fold(0.0, f64::max),
+            "rmse_max_m": rmse.iter().cloned().fold(0.0, f64::max),
+            "map_ospa_m": ospa,
+            "map_ospa_cutoff_m": 5.0,
+            "map_ospa_order": 1,
+            "converged_transmitters": n_est,
+            "true_transmitters": n_true,
+        });
+        std::fs::write(
+            dir.join("summary.json"),
+            serde_json::to_string_pretty(&summary)?,
+        )?;
+    }
     std::fs::write(dir.join("map.json"), out.map.to_json_pretty())?;
     std::fs::write(dir.join("track.csv"), track_csv(&out.rows))?;
     for ext in ["png", "svg"] {

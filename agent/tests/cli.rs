@@ -212,7 +212,13 @@ fn run_writes_map_track_and_plots() {
         log.lines().count() - 1,
         "one row per snapshot"
     );
-    for f in ["track.png", "track.svg", "error.png", "error.svg"] {
+    for f in [
+        "track.png",
+        "track.svg",
+        "error.png",
+        "error.svg",
+        "summary.json",
+    ] {
         assert!(out.join(f).exists(), "{f}");
     }
 }

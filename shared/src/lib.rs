@@ -9,6 +9,8 @@ pub mod geometry;
 pub mod hexgrid;
 pub mod log;
 pub mod map;
+pub mod matching;
+pub mod merging;
 pub mod mixture;
 
 pub use geometry::{Transform2, wrap_angle};

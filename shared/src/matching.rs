@@ -1,0 +1,571 @@
+//! Map matching: the rigid transform `map_from_agent` and the transmitter correspondences
+//! between a user map (agent frame) and a prior map (map frame), seed 001 §III, Fig. 3.
+//!
+//! RANSAC over minimal samples of three transmitters. Beyond the paper's random draw from
+//! both maps, the prior triple is found from the user triple by pairwise-distance
+//! consistency (eq. 17 as a search: every prior triple whose three distances agree with the
+//! user triple's within `distance_tolerance_m`, both orderings of the first pair), and pairs
+//! are gated by the frame-invariant clock offset b. Each consistent triple gives a
+//! least-squares rigid transform (2D Kabsch without scale: a proper rotation, so a mirror
+//! image never fits); local optimization re-collects every pair closer than
+//! `inlier_threshold_m` and re-estimates until the set is stable. Hypotheses are scored by
+//! eq. 18: the location term p(H) (MSAC-style truncated quadratic over inliers) plus the
+//! visibility term log p(M|H) — the user's transformed visibility counts scored under the
+//! prior's Beta distributions (Beta-binomial), as a log-likelihood ratio against an
+//! uninformative Beta(1, 1). The number of user triples drawn adapts to the best inlier
+//! ratio and `confidence`.
+//!
+//! Complexity per drawn triple: O(P·k) for the prior pair index lookups (k consistent pairs)
+//! plus O((U + P)·iterations) per hypothesis for local optimization, with a hash grid of
+//! prior means for nearest-neighbour queries.
+
+use crate::hexgrid::HexGrid;
+use crate::map::{Transmitter, TransmitterMap, transform_visibility};
+use nalgebra::{Isometry2, Point2, Vector2};
+use rand::{Rng, RngExt};
+use std::collections::HashMap;
+
+/// Matching settings; defaults in `Default`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MatchConfig {
+    /// candidates need a position std √tr(P_xy) at most this (m); default 2.0
+    pub max_position_std_m: f64,
+    /// candidates need existence at least this; default 0.5
+    pub min_existence: f64,
+    /// a transformed user transmitter is an inlier of a prior one when the squared
+    /// Mahalanobis distance of their positions (both covariances) is at most this; default
+    /// 9.21 (χ², 2 dof, 99 %)
+    pub inlier_gate_chi2: f64,
+    /// and in any case no farther than this (m); default 3.0
+    pub inlier_threshold_m: f64,
+    /// accept only when the number of false alarms — hypotheses tried × P(at least that many
+    /// inliers by chance, Poisson with the density of the prior map) — is below this; default 1e-3
+    pub max_false_alarms: f64,
+    /// pairwise distances of a triple must agree within this (m); default 1.5
+    pub distance_tolerance_m: f64,
+    /// clock-offset gate: |b_u − b_p| ≤ gate_sigma·√(σ_u² + σ_p²) + floor; defaults 3, 0.5 m
+    pub b_gate_sigma: f64,
+    pub b_gate_floor_m: f64,
+    /// accept only with at least this many inliers; default 5
+    pub min_inliers: usize,
+    /// RANSAC confidence for the adaptive number of draws; default 0.999
+    pub confidence: f64,
+    /// most user triples drawn; default 500
+    pub max_iterations: usize,
+    /// most prior triples tried per user triple; default 16
+    pub max_hypotheses_per_sample: usize,
+    /// the inliers must spread at least this far (m, std along their minor axis): nearly
+    /// collinear inliers cannot tell a rotation from a mirror image; default 1.0
+    pub min_inlier_spread_m: f64,
+    /// use the visibility term of eq. 18; default true
+    pub use_visibility: bool,
+    /// weight of the visibility log-likelihood ratio in the score; default 1.0
+    pub visibility_weight: f64,
+}
+
+impl Default for MatchConfig {
+    fn default() -> Self {
+        MatchConfig {
+            max_position_std_m: 2.0,
+            min_existence: 0.5,
+            inlier_gate_chi2: 9.21,
+            inlier_threshold_m: 3.0,
+            max_false_alarms: 1e-3,
+            distance_tolerance_m: 1.5,
+            b_gate_sigma: 3.0,
+            b_gate_floor_m: 0.5,
+            min_inliers: 5,
+            confidence: 0.999,
+            max_iterations: 500,
+            max_hypotheses_per_sample: 16,
+            min_inlier_spread_m: 1.0,
+            use_visibility: true,
+            visibility_weight: 1.0,
+        }
+    }
+}
+
+/// Outcome of matching.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MatchResult {
+    pub accepted: bool,
+    /// maps agent-frame coordinates into the map frame
+    pub map_from_agent: Isometry2<f64>,
+    /// (user index, prior index) into the maps' transmitter lists
+    pub correspondences: Vec<(usize, usize)>,
+    /// distance after transformation of each correspondence (m)
+    pub residuals_m: Vec<f64>,
+    pub inliers: usize,
+    /// location score + visibility score of the chosen hypothesis
+    pub score: f64,
+    pub visibility_score: f64,
+    /// why the match was rejected
+    pub reason: Option<String>,
+    pub iterations: usize,
+}
+
+impl MatchResult {
+    fn rejected(reason: String, iterations: usize) -> Self {
+        MatchResult {
+            accepted: false,
+            map_from_agent: Isometry2::identity(),
+            correspondences: Vec::new(),
+            residuals_m: Vec::new(),
+            inliers: 0,
+            score: f64::NEG_INFINITY,
+            visibility_score: 0.0,
+            reason: Some(reason),
+            iterations,
+        }
+    }
+}
+
+/// A matching candidate: index in its map, mean position, b and its std.
+#[derive(Debug, Clone, Copy)]
+struct Cand {
+    index: usize,
+    p: Point2<f64>,
+    /// position covariance (x/y block)
+    cov: nalgebra::Matrix2<f64>,
+    b: f64,
+    b_std: f64,
+}
+
+fn candidates(map: &TransmitterMap, cfg: &MatchConfig) -> Vec<Cand> {
+    map.transmitters()
+        .iter()
+        .enumerate()
+        .filter(|(_, t)| t.existence >= cfg.min_existence)
+        .filter_map(|(index, t)| {
+            let (m, p) = t.moments();
+            ((p[(0, 0)] + p[(1, 1)]).sqrt() <= cfg.max_position_std_m).then(|| Cand {
+                index,
+                p: Point2::new(m.x, m.y),
+                cov: p.fixed_view::<2, 2>(0, 0).into_owned(),
+                b: m.z,
+                b_std: p[(2, 2)].max(0.0).sqrt(),
+            })
+        })
+        .collect()
+}
+
+fn b_compatible(u: &Cand, p: &Cand, cfg: &MatchConfig) -> bool {
+    (u.b - p.b).abs() <= cfg.b_gate_sigma * u.b_std.hypot(p.b_std) + cfg.b_gate_floor_m
+}
+
+/// Least-squares rigid transform (rotation + translation, no scale, det = +1) taking
+/// `from` onto `to` (2D Kabsch/Umeyama). None for fewer than two distinct points.
+pub fn fit_rigid(from: &[Point2<f64>], to: &[Point2<f64>]) -> Option<Isometry2<f64>> {
+    let n = from.len();
+    if n < 2 || n != to.len() {
+        return None;
+    }
+    let cf = from.iter().fold(Vector2::zeros(), |a, p| a + p.coords) / n as f64;
+    let ct = to.iter().fold(Vector2::zeros(), |a, p| a + p.coords) / n as f64;
+    let (mut dot, mut cross) = (0.0, 0.0);
+    for (f, t) in from.iter().zip(to) {
+        let (a, b) = (f.coords - cf, t.coords - ct);
+        dot += a.dot(&b);
+        cross += a.x * b.y - a.y * b.x;
+    }
+    if dot.abs() + cross.abs() < 1e-12 {
+        return None;
+    }
+    let angle = cross.atan2(dot);
+    let rot = nalgebra::Rotation2::new(angle);
+    let t = ct - rot * cf;
+    Some(Isometry2::new(t, angle))
+}
+
+/// Uniform hash grid over prior candidates for radius queries.
+struct Grid {
+    cell: f64,
+    cells: HashMap<(i64, i64), Vec<usize>>,
+}
+
+impl Grid {
+    fn new(cands: &[Cand], cell: f64) -> Self {
+        let mut cells: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
+        for (i, c) in cands.iter().enumerate() {
+            cells.entry(Self::key(&c.p, cell)).or_default().push(i);
+        }
+        Grid { cell, cells }
+    }
+
+    fn key(p: &Point2<f64>, cell: f64) -> (i64, i64) {
+        ((p.x / cell).floor() as i64, (p.y / cell).floor() as i64)
+    }
+
+    /// Indices within `r` (≤ cell) of `p`, in index order.
+    fn near(&self, p: &Point2<f64>, r: f64, cands: &[Cand], out: &mut Vec<usize>) {
+        out.clear();
+        let (kx, ky) = Self::key(p, self.cell);
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                if let Some(v) = self.cells.get(&(kx + dx, ky + dy)) {
+                    out.extend(v.iter().copied().filter(|&i| (cands[i].p - p).norm() <= r));
+                }
+            }
+        }
+        out.sort_unstable();
+    }
+}
+
+/// ln Γ(x) for x > 0 (Lanczos, g = 7, n = 9; relative error ~1e-15).
+pub fn ln_gamma(x: f64) -> f64 {
+    const G: [f64; 9] = [
+        0.999_999_999_999_809_9,
+        676.520_368_121_885_1,
+        -1_259.139_216_722_402_8,
+        771.323_428_777_653_1,
+        -176.615_029_162_140_6,
+        12.507_343_278_686_905,
+        -0.138_571_095_265_720_12,
+        9.984_369_578_019_572e-6,
+        1.505_632_735_149_311_6e-7,
+    ];
+    if x < 0.5 {
+        let pi = std::f64::consts::PI;
+        return (pi / (pi * x).sin()).ln() - ln_gamma(1.0 - x);
+    }
+    let x = x - 1.0;
+    let mut a = G[0];
+    let t = x + 7.5;
+    for (i, g) in G.iter().enumerate().skip(1) {
+        a += g / (x + i as f64);
+    }
+    0.5 * (2.0 * std::f64::consts::PI).ln() + (x + 0.5) * t.ln() - t + a.ln()
+}
+
+fn ln_beta(a: f64, b: f64) -> f64 {
+    ln_gamma(a) + ln_gamma(b) - ln_gamma(a + b)
+}
+
+/// Visibility term of eq. 18 for one correspondence: Σ over the user's (transformed) cells
+/// of ln BetaBinomial(k; n, α_p + 1, β_p + 1) − ln BetaBinomial(k; n, 1, 1), where k, n are
+/// the user's seen / total counts and α_p, β_p the prior's counts in the same cell.
+fn visibility_llr(
+    user: &Transmitter,
+    prior: &Transmitter,
+    map_from_agent: &Isometry2<f64>,
+    grid: &HexGrid,
+) -> f64 {
+    if user.visibility.is_empty() || prior.visibility.is_empty() {
+        return 0.0;
+    }
+    let moved = transform_visibility(&user.visibility, map_from_agent, grid);
+    let mut llr = 0.0;
+    for (cell, u) in &moved {
+        if let Some(p) = prior.visibility.get(cell) {
+            let (k, m) = (u.alpha, u.beta);
+            let (a, b) = (p.alpha + 1.0, p.beta + 1.0);
+            llr += ln_beta(k + a, m + b)
+                - ln_beta(a, b)
+                - (ln_beta(k + 1.0, m + 1.0) - ln_beta(1.0, 1.0));
+        }
+    }
+    llr
+}
+
+struct Hypothesis {
+    iso: Isometry2<f64>,
+    pairs: Vec<(usize, usize)>, // candidate indices (user, prior)
+    residuals: Vec<f64>,
+    loc_score: f64,
+}
+
+/// Collects one-to-one inlier pairs under `iso` (greedy by distance) and refits.
+fn local_optimize(
+    iso: Isometry2<f64>,
+    u: &[Cand],
+    p: &[Cand],
+    grid: &Grid,
+    cfg: &MatchConfig,
+) -> Option<Hypothesis> {
+    let mut iso = iso;
+    let mut last: Vec<(usize, usize)> = Vec::new();
+    let mut near = Vec::new();
+    for _ in 0..10 {
+        let mut cand_pairs: Vec<(f64, usize, usize)> = Vec::new();
+        let rot = iso.rotation.to_rotation_matrix().into_inner();
+        for (i, uc) in u.iter().enumerate() {
+            let q = iso * uc.p;
+            let cov_u = rot * uc.cov * rot.transpose();
+            grid.near(&q, cfg.inlier_threshold_m, p, &mut near);
+            for &j in &near {
+                if b_compatible(uc, &p[j], cfg) {
+                    let r = p[j].p - q;
+                    let d2 = (cov_u + p[j].cov)
+                        .cholesky()
+                        .map(|c| r.dot(&c.solve(&r)))
+                        .unwrap_or(f64::INFINITY);
+                    if d2 <= cfg.inlier_gate_chi2 {
+                        cand_pairs.push((d2, i, j));
+                    }
+                }
+            }
+        }
+        cand_pairs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        let (mut used_u, mut used_p) = (vec![false; u.len()], vec![false; p.len()]);
+        let mut pairs = Vec::new();
+        for (_, i, j) in cand_pairs {
+            if !used_u[i] && !used_p[j] {
+                used_u[i] = true;
+                used_p[j] = true;
+                pairs.push((i, j));
+            }
+        }
+        pairs.sort_unstable();
+        if pairs.len() < 3 {
+            return None;
+        }
+        let from: Vec<Point2<f64>> = pairs.iter().map(|&(i, _)| u[i].p).collect();
+        let to: Vec<Point2<f64>> = pairs.iter().map(|&(_, j)| p[j].p).collect();
+        iso = fit_rigid(&from, &to)?;
+        if pairs == last {
+            break;
+        }
+        last = pairs;
+    }
+    let rot = iso.rotation.to_rotation_matrix().into_inner();
+    let residuals: Vec<f64> = last
+        .iter()
+        .map(|&(i, j)| (iso * u[i].p - p[j].p).norm())
+        .collect();
+    // MSAC-style: each inlier scores 1 − d²/gate (d² its Mahalanobis distance)
+    let loc_score = last
+        .iter()
+        .map(|&(i, j)| {
+            let r = p[j].p - iso * u[i].p;
+            let s = rot * u[i].cov * rot.transpose() + p[j].cov;
+            let d2 = s
+                .cholesky()
+                .map(|c| r.dot(&c.solve(&r)))
+                .unwrap_or(f64::INFINITY);
+            1.0 - (d2 / cfg.inlier_gate_chi2).min(1.0)
+        })
+        .sum();
+    Some(Hypothesis {
+        iso,
+        pairs: last,
+        residuals,
+        loc_score,
+    })
+}
+
+/// Matches `user` (agent frame) against `prior` (map frame). Deterministic for a given RNG
+/// state; the RNG is only used to draw user triples.
+pub fn match_maps(
+    user: &TransmitterMap,
+    prior: &TransmitterMap,
+    cfg: &MatchConfig,
+    rng: &mut impl Rng,
+) -> MatchResult {
+    let u = candidates(user, cfg);
+    let p = candidates(prior, cfg);
+    if u.len() < 3 || p.len() < 3 {
+        return MatchResult::rejected(
+            format!(
+                "too few converged transmitters: {} in the user map, {} in the prior map (3 needed)",
+                u.len(),
+                p.len()
+            ),
+            0,
+        );
+    }
+    // Prior pairs sorted by distance, for consistent-pair lookup.
+    let mut pair_index: Vec<(f64, usize, usize)> = Vec::with_capacity(p.len() * (p.len() - 1) / 2);
+    for i in 0..p.len() {
+        for j in (i + 1)..p.len() {
+            pair_index.push(((p[i].p - p[j].p).norm(), i, j));
+        }
+    }
+    pair_index.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let grid = Grid::new(&p, cfg.inlier_threshold_m.max(1e-3));
+    let hex = prior.grid();
+    let tol = cfg.distance_tolerance_m;
+
+    let mut best: Option<(f64, f64, Hypothesis)> = None;
+    let mut tests = 0usize;
+    let mut needed = cfg.max_iterations;
+    let mut it = 0;
+    while it < needed.min(cfg.max_iterations) {
+        it += 1;
+        // draw a user triple with distinct members
+        let a = rng.random_range(0..u.len());
+        let mut b = rng.random_range(0..u.len() - 1);
+        if b >= a {
+            b += 1;
+        }
+        let mut c = rng.random_range(0..u.len() - 2);
+        for x in [a.min(b), a.max(b)] {
+            if c >= x {
+                c += 1;
+            }
+        }
+        let (ua, ub, uc) = (&u[a], &u[b], &u[c]);
+        let dab = (ua.p - ub.p).norm();
+        let dac = (ua.p - uc.p).norm();
+        let dbc = (ub.p - uc.p).norm();
+        if dab < tol || dac < tol || dbc < tol {
+            continue; // degenerate triple
+        }
+        let lo = pair_index.partition_point(|x| x.0 < dab - tol);
+        let mut tried = 0;
+        for &(d, i, j) in &pair_index[lo..] {
+            if d > dab + tol || tried >= cfg.max_hypotheses_per_sample {
+                break;
+            }
+            for (pa, pb) in [(i, j), (j, i)] {
+                if !b_compatible(ua, &p[pa], cfg) || !b_compatible(ub, &p[pb], cfg) {
+                    continue;
+                }
+                for (k, pc) in p.iter().enumerate() {
+                    if k == pa || k == pb || !b_compatible(uc, pc, cfg) {
+                        continue;
+                    }
+                    if ((p[pa].p - pc.p).norm() - dac).abs() > tol
+                        || ((p[pb].p - pc.p).norm() - dbc).abs() > tol
+                    {
+                        continue;
+                    }
+                    tried += 1;
+                    tests += 1;
+                    let Some(iso) = fit_rigid(&[ua.p, ub.p, uc.p], &[p[pa].p, p[pb].p, pc.p])
+                    else {
+                        continue;
+                    };
+                    // the minimal sample itself must fit (a mirror image does not)
+                    if [(ua, pa), (ub, pb), (uc, k)]
+                        .iter()
+                        .any(|(x, y)| (iso * x.p - p[*y].p).norm() > cfg.inlier_threshold_m)
+                    {
+                        continue;
+                    }
+                    let Some(h) = local_optimize(iso, &u, &p, &grid, cfg) else {
+                        continue;
+                    };
+                    let vis = if cfg.use_visibility {
+                        h.pairs
+                            .iter()
+                            .map(|&(i, j)| {
+                                visibility_llr(
+                                    &user.transmitters()[u[i].index],
+                                    &prior.transmitters()[p[j].index],
+                                    &h.iso,
+                                    &hex,
+                                )
+                            })
+                            .sum::<f64>()
+                            * cfg.visibility_weight
+                    } else {
+                        0.0
+                    };
+                    let score = h.loc_score + vis;
+                    if best.as_ref().is_none_or(|b| score > b.0) {
+                        // adaptive iteration count from the inlier ratio of the best hypothesis
+                        let w = (h.pairs.len() as f64 / u.len() as f64).min(1.0);
+                        let p_good = w.powi(3);
+                        if p_good > 0.0 && p_good < 1.0 {
+                            needed =
+                                ((1.0 - cfg.confidence).ln() / (1.0 - p_good).ln()).ceil() as usize;
+                        } else if p_good >= 1.0 {
+                            needed = it;
+                        }
+                        best = Some((score, vis, h));
+                    }
+                }
+            }
+        }
+    }
+    let Some((score, vis, h)) = best else {
+        return MatchResult::rejected("no consistent transmitter triple found".into(), it);
+    };
+    let nfa = false_alarms(&u, &p, cfg, tests.max(1), h.pairs.len());
+    let spread = minor_axis_std(&h.pairs.iter().map(|&(_, j)| p[j].p).collect::<Vec<_>>());
+    let mut result = MatchResult {
+        accepted: h.pairs.len() >= cfg.min_inliers
+            && nfa <= cfg.max_false_alarms
+            && spread >= cfg.min_inlier_spread_m,
+        map_from_agent: h.iso,
+        correspondences: h
+            .pairs
+            .iter()
+            .map(|&(i, j)| (u[i].index, p[j].index))
+            .collect(),
+        residuals_m: h.residuals,
+        inliers: h.pairs.len(),
+        score,
+        visibility_score: vis,
+        reason: None,
+        iterations: it,
+    };
+    if h.pairs.len() < cfg.min_inliers {
+        result.reason = Some(format!(
+            "only {} inliers, {} needed",
+            result.inliers, cfg.min_inliers
+        ));
+    } else if spread < cfg.min_inlier_spread_m {
+        result.reason = Some(format!(
+            "the {} inliers are nearly collinear (spread {spread:.2} m < {} m): a mirror image would fit as well",
+            result.inliers, cfg.min_inlier_spread_m
+        ));
+    } else if !result.accepted {
+        result.reason = Some(format!(
+            "{} inliers could be chance in maps this dense (expected false alarms {nfa:.2e} > {:.0e})",
+            result.inliers, cfg.max_false_alarms
+        ));
+    }
+    result
+}
+
+/// Standard deviation of points along their minor principal axis.
+fn minor_axis_std(pts: &[Point2<f64>]) -> f64 {
+    if pts.len() < 2 {
+        return 0.0;
+    }
+    let n = pts.len() as f64;
+    let c = pts.iter().fold(Vector2::zeros(), |a, p| a + p.coords) / n;
+    let cov = pts.iter().fold(nalgebra::Matrix2::zeros(), |a, p| {
+        let d = p.coords - c;
+        a + d * d.transpose()
+    }) / n;
+    cov.symmetric_eigenvalues().min().max(0.0).sqrt()
+}
+
+/// Expected number of false alarms of a hypothesis with `k` inliers (a-contrario test):
+/// `tests · P(X ≥ k)`, X ~ Poisson(λ), λ the expected chance coincidences of the user
+/// candidates with prior candidates spread uniformly over the prior's bounding box, each
+/// coincidence region the χ² gate ellipse of the mean covariances.
+fn false_alarms(u: &[Cand], p: &[Cand], cfg: &MatchConfig, tests: usize, k: usize) -> f64 {
+    let (mut x0, mut x1, mut y0, mut y1) = (
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+    );
+    for c in p {
+        x0 = x0.min(c.p.x);
+        x1 = x1.max(c.p.x);
+        y0 = y0.min(c.p.y);
+        y1 = y1.max(c.p.y);
+    }
+    let margin = cfg.inlier_threshold_m;
+    let area = ((x1 - x0) + 2.0 * margin) * ((y1 - y0) + 2.0 * margin);
+    let mean_cov = (u.iter().map(|c| c.cov).sum::<nalgebra::Matrix2<f64>>() / u.len() as f64)
+        + (p.iter().map(|c| c.cov).sum::<nalgebra::Matrix2<f64>>() / p.len() as f64);
+    let ellipse =
+        (std::f64::consts::PI * cfg.inlier_gate_chi2 * mean_cov.determinant().max(0.0).sqrt())
+            .min(std::f64::consts::PI * cfg.inlier_threshold_m.powi(2));
+    let lambda = (u.len() as f64 * p.len() as f64 * ellipse / area).max(1e-12);
+    // ln P(X ≥ k) = ln Σ_{i ≥ k} e^{−λ} λ^i / i!, summed in log space
+    let mut ln_terms = Vec::new();
+    let mut ln_term = -lambda + k as f64 * lambda.ln() - ln_gamma(k as f64 + 1.0);
+    for i in k..k + 200 {
+        ln_terms.push(ln_term);
+        ln_term += lambda.ln() - ((i + 1) as f64).ln();
+    }
+    let max = ln_terms.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let ln_tail = max + ln_terms.iter().map(|t| (t - max).exp()).sum::<f64>().ln();
+    (tests as f64).ln().exp() * ln_tail.exp()
+}
