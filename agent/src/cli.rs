@@ -33,6 +33,11 @@ pub enum Command {
     /// Convert a real dataset into a measurement log + ground truth.
     #[command(subcommand)]
     Import(ImportCommand),
+    /// Match a user map (agent frame) against a prior map (map frame): prints the transform
+    /// map_from_agent, the correspondences and the score.
+    Match(MatchArgs),
+    /// Match and merge a user map into a prior map; writes the merged map.
+    Merge(MergeArgs),
     /// The main job for now: simulate the indoor reference track and render the scenario and
     /// the channel-estimator output into --out (default out/demo).
     Demo(DemoArgs),
@@ -210,6 +215,61 @@ pub struct MrclamArgs {
 }
 
 #[derive(Debug, Args)]
+pub struct MatchArgs {
+    /// user map (echomap.map.v1, agent frame)
+    pub user: PathBuf,
+    /// prior map (echomap.map.v1, map frame)
+    pub prior: PathBuf,
+    /// seed of the RANSAC draws
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// one JSON object on stdout
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct MergeArgs {
+    /// prior map (map frame)
+    pub prior: PathBuf,
+    /// user map (agent frame)
+    pub user: PathBuf,
+    /// seed of the RANSAC draws
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// merged map (written only when the match is accepted or the prior is empty)
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+fn read_map(path: &Path) -> Result<echomap_shared::TransmitterMap> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    echomap_shared::TransmitterMap::from_json(&text)
+        .with_context(|| format!("in {}", path.display()))
+}
+
+/// JSON form of a match result (ids instead of indices).
+pub fn match_json(
+    r: &echomap_shared::matching::MatchResult,
+    user: &echomap_shared::TransmitterMap,
+    prior: &echomap_shared::TransmitterMap,
+) -> serde_json::Value {
+    let t = echomap_shared::Transform2::from_isometry(&r.map_from_agent);
+    serde_json::json!({
+        "accepted": r.accepted,
+        "map_from_agent": t,
+        "correspondences": r.correspondences.iter().map(|&(u, p)| [user.transmitters()[u].id.clone(), prior.transmitters()[p].id.clone()]).collect::<Vec<_>>(),
+        "residuals_m": r.residuals_m,
+        "inliers": r.inliers,
+        "score": if r.score.is_finite() { r.score } else { 0.0 },
+        "visibility_score": r.visibility_score,
+        "iterations": r.iterations,
+        "reason": r.reason,
+    })
+}
+
+#[derive(Debug, Args)]
 pub struct DemoArgs {
     /// seed of the simulation
     #[arg(long, default_value_t = 1)]
@@ -324,6 +384,58 @@ pub fn run(cli: Cli) -> Result<()> {
             let (log, truth) = crate::mrclam::import(&a.dir, opts)?;
             write_sim_output(&crate::sim::SimOutput { log, truth }, &a.out)?;
             println!("imported MRCLAM robot {} → {}", a.robot, a.out.display());
+            Ok(())
+        }
+        Command::Match(a) => {
+            let (user, prior) = (read_map(&a.user)?, read_map(&a.prior)?);
+            let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(a.seed);
+            let r =
+                echomap_shared::matching::match_maps(&user, &prior, &Default::default(), &mut rng);
+            let j = match_json(&r, &user, &prior);
+            if a.json {
+                println!("{j}");
+            } else {
+                println!("{}", serde_json::to_string_pretty(&j)?);
+            }
+            Ok(())
+        }
+        Command::Merge(a) => {
+            let (prior, user) = (read_map(&a.prior)?, read_map(&a.user)?);
+            let (iso, pairs) = if prior.is_empty() {
+                (nalgebra::Isometry2::identity(), Vec::new())
+            } else {
+                let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(a.seed);
+                let r = echomap_shared::matching::match_maps(
+                    &user,
+                    &prior,
+                    &Default::default(),
+                    &mut rng,
+                );
+                if !r.accepted {
+                    bail!(
+                        "no match, nothing written: {}",
+                        r.reason.unwrap_or_default()
+                    );
+                }
+                (r.map_from_agent, r.correspondences)
+            };
+            let (merged, stats) = echomap_shared::merging::merge_maps(
+                &prior,
+                &user,
+                &iso,
+                &pairs,
+                &Default::default(),
+            )?;
+            std::fs::write(&a.out, merged.to_json_pretty())
+                .with_context(|| format!("writing {}", a.out.display()))?;
+            println!(
+                "merged {} transmitters, added {}, kept {} → {} ({} transmitters)",
+                stats.merged,
+                stats.added,
+                stats.kept,
+                a.out.display(),
+                merged.len()
+            );
             Ok(())
         }
         Command::Evaluate(a) => crate::evaluate::evaluate(&a),
