@@ -246,3 +246,122 @@ fn run_on_a_malformed_log_names_the_line_and_writes_nothing() {
     assert!(err.contains("line 3"), "{err}");
     assert!(!out.exists());
 }
+
+fn chiral_map(frame: nalgebra::Isometry2<f64>, prefix: &str) -> echomap_shared::TransmitterMap {
+    use echomap_shared::map::Transmitter;
+    use echomap_shared::mixture::Component;
+    let pts = [
+        [0.0, 0.0, 0.0],
+        [10.0, 0.0, 0.0],
+        [3.0, 7.0, 0.0],
+        [15.0, 12.0, 4.0],
+        [-4.0, 9.0, 0.0],
+        [7.0, 18.0, 0.0],
+        [21.0, 3.0, 9.0],
+    ];
+    let ts = pts
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let q = frame * nalgebra::Point2::new(p[0], p[1]);
+            Transmitter {
+                id: format!("{prefix}{i}"),
+                components: vec![Component::new(
+                    1.0,
+                    nalgebra::Vector3::new(q.x, q.y, p[2]),
+                    nalgebra::Matrix3::identity() * 0.02,
+                )],
+                existence: 1.0,
+                reliability_m: 20.0,
+                visibility: Default::default(),
+            }
+        })
+        .collect();
+    echomap_shared::TransmitterMap::new(2.0, ts).unwrap()
+}
+
+#[test]
+fn match_and_merge_commands() {
+    let dir = tempfile::tempdir().unwrap();
+    let map_from_agent = nalgebra::Isometry2::new(nalgebra::Vector2::new(4.0, -7.0), 0.8);
+    let prior = chiral_map(nalgebra::Isometry2::identity(), "p");
+    let user = chiral_map(map_from_agent.inverse(), "u");
+    let (pf, uf) = (dir.path().join("prior.json"), dir.path().join("user.json"));
+    std::fs::write(&pf, prior.to_json_pretty()).unwrap();
+    std::fs::write(&uf, user.to_json_pretty()).unwrap();
+    let st = agent()
+        .arg("match")
+        .arg(&uf)
+        .arg(&pf)
+        .arg("--json")
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&st.stdout).unwrap();
+    assert_eq!(v["accepted"], true, "{v}");
+    assert!((v["map_from_agent"]["angle_rad"].as_f64().unwrap() - 0.8).abs() < 1e-6);
+    let pairs = v["correspondences"].as_array().unwrap();
+    assert_eq!(pairs.len(), 7);
+    assert!(
+        pairs
+            .iter()
+            .all(|p| p[0].as_str().unwrap()[1..] == p[1].as_str().unwrap()[1..])
+    );
+    // merge: every user transmitter merges into its prior counterpart
+    let out = dir.path().join("merged.json");
+    let st = agent()
+        .arg("merge")
+        .arg(&pf)
+        .arg(&uf)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let merged =
+        echomap_shared::TransmitterMap::from_json(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(merged.len(), 7);
+    assert!(
+        merged
+            .transmitters()
+            .iter()
+            .all(|t| (t.reliability_m - 40.0).abs() < 1e-9)
+    );
+    // an unrelated (mirrored) user map is rejected and nothing is written
+    let mirrored = chiral_map(nalgebra::Isometry2::identity(), "m")
+        .transformed(&nalgebra::Isometry2::identity());
+    let mirrored = echomap_shared::TransmitterMap::new(
+        2.0,
+        mirrored
+            .transmitters()
+            .iter()
+            .cloned()
+            .map(|mut t| {
+                t.components[0].mean.x = -t.components[0].mean.x;
+                t
+            })
+            .collect(),
+    )
+    .unwrap();
+    let mf = dir.path().join("mirrored.json");
+    std::fs::write(&mf, mirrored.to_json_pretty()).unwrap();
+    let out2 = dir.path().join("merged2.json");
+    let st = agent()
+        .arg("merge")
+        .arg(&pf)
+        .arg(&mf)
+        .arg("--out")
+        .arg(&out2)
+        .output()
+        .unwrap();
+    assert!(!st.status.success());
+    assert!(!out2.exists());
+}
