@@ -21,7 +21,7 @@ fn maps(
     let side = ((shared + outliers) as f64).sqrt() * 8.0;
     let truth = Isometry2::new(Vector2::new(30.0, -12.0), 1.1);
     let inv = truth.inverse();
-    let mut mk = |id: String, p: Point2<f64>, b: f64| Transmitter {
+    let mk = |id: String, p: Point2<f64>, b: f64| Transmitter {
         id,
         components: vec![Component::new(
             1.0,
