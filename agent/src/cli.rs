@@ -370,7 +370,7 @@ pub fn run(cli: Cli) -> Result<()> {
                 .unwrap_or(0.0);
             let cfg = a.filter.config(a.seed, initial_speed)?;
             let out = crate::run::run_filter(&log, truth.as_ref(), cfg, !a.quiet)?;
-            crate::output::write_run(&out, truth.as_ref(), &a.out)?;
+            crate::output::write_run(&out, truth.as_ref(), &log, &a.out)?;
             crate::output::print_summary(&out, truth.as_ref(), &log);
             Ok(())
         }

@@ -1,42 +1,84 @@
-//! Writing run results: map.json, track.csv, plots, and the console summary.
+//! Writing run results: map.json, track.csv, summary.json, plots, and the console summary.
 
 use crate::eval::{map_ospa, track_csv};
 use crate::run::RunOutput;
 use anyhow::{Context, Result};
-use echomap_shared::log::GroundTruth;
+use echomap_shared::log::{GroundTruth, MeasurementLog};
+use serde::Serialize;
 use std::path::Path;
 
-pub fn write_run(out: &RunOutput, truth: Option<&GroundTruth>, dir: &Path) -> Result<()> {
+/// Error statistics of a run against ground truth (`summary.json`).
+#[derive(Debug, Clone, Serialize)]
+pub struct RunSummary {
+    pub snapshots: usize,
+    pub traveled_m: f64,
+    pub transmitters: usize,
+    pub mae_final_m: f64,
+    pub mae_mean_m: f64,
+    pub mae_max_m: f64,
+    pub rmse_max_m: f64,
+    /// OSPA (seed 003 eq. 43), cut-off 5 m, order 1, in [x, y, b]
+    pub map_ospa_m: f64,
+    pub converged_transmitters: usize,
+    pub true_transmitters: usize,
+    /// mean error of integrating gyro + speed alone, for logs that carry speed
+    pub dead_reckoning_mean_m: Option<f64>,
+    pub dead_reckoning_final_m: Option<f64>,
+}
+
+pub fn summarize(out: &RunOutput, truth: &GroundTruth, log: &MeasurementLog) -> RunSummary {
+    let mae: Vec<f64> = out
+        .rows
+        .iter()
+        .filter_map(|r| r.truth.map(|t| t.mae_m))
+        .collect();
+    let rmse_max = out
+        .rows
+        .iter()
+        .filter_map(|r| r.truth.map(|t| t.rmse_m))
+        .fold(0.0, f64::max);
+    let (ospa, n_est, n_true) = map_ospa(&out.map, truth);
+    let (dr_mean, dr_final) = if log.header.speed {
+        let dr = crate::mrclam::dead_reckoning(log);
+        let e: Vec<f64> = dr
+            .iter()
+            .zip(&truth.poses)
+            .map(|(p, t)| (p.0 - t.x).hypot(p.1 - t.y))
+            .collect();
+        (
+            Some(e.iter().sum::<f64>() / e.len().max(1) as f64),
+            e.last().copied(),
+        )
+    } else {
+        (None, None)
+    };
+    RunSummary {
+        snapshots: out.rows.len(),
+        traveled_m: out.rows.last().map(|r| r.traveled_m).unwrap_or(0.0),
+        transmitters: out.map.len(),
+        mae_final_m: mae.last().copied().unwrap_or(f64::NAN),
+        mae_mean_m: mae.iter().sum::<f64>() / mae.len().max(1) as f64,
+        mae_max_m: mae.iter().cloned().fold(0.0, f64::max),
+        rmse_max_m: rmse_max,
+        map_ospa_m: ospa,
+        converged_transmitters: n_est,
+        true_transmitters: n_true,
+        dead_reckoning_mean_m: dr_mean,
+        dead_reckoning_final_m: dr_final,
+    }
+}
+
+pub fn write_run(
+    out: &RunOutput,
+    truth: Option<&GroundTruth>,
+    log: &MeasurementLog,
+    dir: &Path,
+) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     if let Some(truth) = truth {
-        let mae: Vec<f64> = out
-            .rows
-            .iter()
-            .filter_map(|r| r.truth.map(|t| t.mae_m))
-            .collect();
-        let rmse: Vec<f64> = out
-            .rows
-            .iter()
-            .filter_map(|r| r.truth.map(|t| t.rmse_m))
-            .collect();
-        let (ospa, n_est, n_true) = map_ospa(&out.map, truth);
-        let summary = serde_json::json!({
-            "snapshots": out.rows.len(),
-            "traveled_m": out.rows.last().map(|r| r.traveled_m),
-            "transmitters": out.map.len(),
-            "mae_final_m": mae.last(),
-            "mae_mean_m": mae.iter().sum::<f64>() / mae.len().max(1) as f64,
-            "mae_max_m": mae.iter().cloned().fold(0.0, f64::max),
-            "rmse_max_m": rmse.iter().cloned().fold(0.0, f64::max),
-            "map_ospa_m": ospa,
-            "map_ospa_cutoff_m": 5.0,
-            "map_ospa_order": 1,
-            "converged_transmitters": n_est,
-            "true_transmitters": n_true,
-        });
         std::fs::write(
             dir.join("summary.json"),
-            serde_json::to_string_pretty(&summary)?,
+            serde_json::to_string_pretty(&summarize(out, truth, log))?,
         )?;
     }
     std::fs::write(dir.join("map.json"), out.map.to_json_pretty())?;
@@ -55,53 +97,27 @@ pub fn write_run(out: &RunOutput, truth: Option<&GroundTruth>, dir: &Path) -> Re
     Ok(())
 }
 
-pub fn print_summary(
-    out: &RunOutput,
-    truth: Option<&GroundTruth>,
-    log: &echomap_shared::log::MeasurementLog,
-) {
-    let last = out.rows.last();
+pub fn print_summary(out: &RunOutput, truth: Option<&GroundTruth>, log: &MeasurementLog) {
     println!(
         "{} snapshots, {:.1} m travelled, {} transmitters in the map",
         out.rows.len(),
-        last.map(|r| r.traveled_m).unwrap_or(0.0),
+        out.rows.last().map(|r| r.traveled_m).unwrap_or(0.0),
         out.map.len()
     );
     if let Some(truth) = truth {
-        let errs: Vec<f64> = out
-            .rows
-            .iter()
-            .filter_map(|r| r.truth.map(|t| t.mae_m))
-            .collect();
-        let mean = errs.iter().sum::<f64>() / errs.len().max(1) as f64;
-        let rmse: Vec<f64> = out
-            .rows
-            .iter()
-            .filter_map(|r| r.truth.map(|t| t.rmse_m))
-            .collect();
-        let (ospa, n_est, n_true) = map_ospa(&out.map, truth);
+        let s = summarize(out, truth, log);
         println!(
             "MAE: final {:.2} m, mean {:.2} m, max {:.2} m; RMSE max {:.2} m; map OSPA {:.2} m ({} converged vs {} true transmitters)",
-            errs.last().copied().unwrap_or(f64::NAN),
-            mean,
-            errs.iter().cloned().fold(0.0, f64::max),
-            rmse.iter().cloned().fold(0.0, f64::max),
-            ospa,
-            n_est,
-            n_true
+            s.mae_final_m,
+            s.mae_mean_m,
+            s.mae_max_m,
+            s.rmse_max_m,
+            s.map_ospa_m,
+            s.converged_transmitters,
+            s.true_transmitters
         );
-        if log.header.speed {
-            let dr = crate::mrclam::dead_reckoning(log);
-            let e: Vec<f64> = dr
-                .iter()
-                .zip(&truth.poses)
-                .map(|(p, t)| (p.0 - t.x).hypot(p.1 - t.y))
-                .collect();
-            println!(
-                "dead reckoning (gyro + speed only): mean error {:.2} m, final {:.2} m",
-                e.iter().sum::<f64>() / e.len().max(1) as f64,
-                e.last().copied().unwrap_or(f64::NAN)
-            );
+        if let (Some(m), Some(f)) = (s.dead_reckoning_mean_m, s.dead_reckoning_final_m) {
+            println!("dead reckoning (gyro + speed only): mean error {m:.2} m, final {f:.2} m");
         }
     }
 }
