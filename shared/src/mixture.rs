@@ -154,27 +154,6 @@ pub fn reduce(components: &[Component], max_components: usize) -> Vec<Component>
     slots.into_iter().flatten().collect()
 }
 
-/// Removes components whose weight is below `min_weight` (keeping at least the heaviest one)
-/// and renormalizes.
-pub fn prune(components: &mut Vec<Component>, min_weight: f64) {
-    if components.is_empty() {
-        return;
-    }
-    let heaviest = components
-        .iter()
-        .enumerate()
-        .max_by(|a, b| a.1.weight.total_cmp(&b.1.weight))
-        .map(|(i, _)| i)
-        .unwrap();
-    let mut i = 0;
-    components.retain(|c| {
-        let keep = i == heaviest || c.weight >= min_weight;
-        i += 1;
-        keep
-    });
-    let _ = normalize(components);
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -254,17 +233,5 @@ mod tests {
         assert_eq!(r.len(), 2);
         assert!((r[0].weight - 0.6).abs() < 1e-12);
         assert!((r[1].mean.x - 30.0).abs() < 1e-12);
-    }
-
-    #[test]
-    fn prune_keeps_heaviest_and_normalizes() {
-        let i = Matrix3::identity();
-        let mut comps = vec![
-            Component::new(0.001, Vector3::zeros(), i),
-            Component::new(0.002, Vector3::zeros(), i),
-        ];
-        prune(&mut comps, 0.01);
-        assert_eq!(comps.len(), 1);
-        assert!((comps[0].weight - 1.0).abs() < 1e-12);
     }
 }

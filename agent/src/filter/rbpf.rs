@@ -47,7 +47,6 @@ pub struct Particle {
 #[derive(Debug, Clone)]
 pub struct Identity {
     pub track: u64,
-    pub first_step: usize,
 }
 
 /// Summary of one filter step.
@@ -366,10 +365,7 @@ impl Filter {
             if !self.track_identity.contains_key(&c.track) {
                 fresh.insert(c.track);
                 let id = self.identities.len() as u32;
-                self.identities.push(Identity {
-                    track: c.track,
-                    first_step: self.step,
-                });
+                self.identities.push(Identity { track: c.track });
                 self.track_identity.insert(c.track, id);
             }
         }

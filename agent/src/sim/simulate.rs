@@ -124,6 +124,24 @@ impl Scenario {
     }
 }
 
+/// Geometry, interaction sequences and trajectory for tracing `track` of `scenario`.
+fn tracing_setup(
+    scenario: &Scenario,
+    track: &Track,
+) -> (Geometry, Vec<Vec<Interaction>>, Trajectory) {
+    let geo = scenario.geometry();
+    let seqs = sequences(
+        geo.walls.len(),
+        geo.scatterers.len(),
+        scenario.estimator.max_order,
+    );
+    (
+        geo,
+        seqs,
+        Trajectory::new(&track.waypoints, track.turn_radius_m),
+    )
+}
+
 /// One resolved, detected component before noise.
 struct Candidate {
     seq: usize,
@@ -141,13 +159,7 @@ pub fn simulate(
 ) -> Result<SimOutput, ScenarioError> {
     scenario.validate()?;
     let track: &Track = scenario.track(track_name)?;
-    let geo = scenario.geometry();
-    let seqs = sequences(
-        geo.walls.len(),
-        geo.scatterers.len(),
-        scenario.estimator.max_order,
-    );
-    let traj = Trajectory::new(&track.waypoints, track.turn_radius_m);
+    let (geo, seqs, traj) = tracing_setup(scenario, track);
     let dt = 1.0 / scenario.snapshot_rate_hz;
     let step = track.speed_mps * dt;
     let n_snap = (traj.length_m() / step).floor() as usize + 1;
@@ -333,13 +345,7 @@ pub fn visible_virtual_transmitters(
     track: &Track,
     step_m: f64,
 ) -> Vec<(Point2<f64>, f64, String)> {
-    let geo = scenario.geometry();
-    let seqs = sequences(
-        geo.walls.len(),
-        geo.scatterers.len(),
-        scenario.estimator.max_order,
-    );
-    let traj = Trajectory::new(&track.waypoints, track.turn_radius_m);
+    let (geo, seqs, traj) = tracing_setup(scenario, track);
     let noise = scenario.noise_power_dbm();
     let mut seen: Vec<Option<(Point2<f64>, f64, String)>> = vec![None; seqs.len()];
     let mut s = 0.0;
