@@ -1,20 +1,17 @@
-//! `echomap-server`: the crowd-sourced map server. Until the server issue lands it only
-//! reports its version.
-
+use anyhow::Result;
 use clap::Parser;
+use echomap_server::{Application, Config, init_tracing, shutdown_signal};
+use std::io::Write;
 
-#[derive(Debug, Parser)]
-#[command(
-    name = "echomap-server",
-    version,
-    about = "echomap map server (HTTP API not implemented yet)"
-)]
-struct Cli {}
-
-fn main() {
-    let _ = Cli::parse();
-    println!(
-        "echomap-server {} — the HTTP API is not implemented yet",
-        env!("CARGO_PKG_VERSION")
-    );
+#[tokio::main]
+async fn main() -> Result<()> {
+    let config = Config::parse();
+    init_tracing(config.log_format);
+    let app = Application::build(config).await?;
+    let addr = app.local_addr();
+    tracing::info!(%addr, "echomap-server listening");
+    // one machine-readable line on stdout, for scripts and tests that start on port 0
+    println!("echomap-server listening on http://{addr}");
+    std::io::stdout().flush()?;
+    app.run_until(shutdown_signal()).await
 }

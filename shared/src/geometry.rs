@@ -40,6 +40,7 @@ pub fn rotation(angle_rad: f64) -> Matrix2<f64> {
 
 /// Wire form of a 2D rigid transform: `p_to = R(angle_rad)·p_from + translation`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[serde(deny_unknown_fields)]
 pub struct Transform2 {
     pub angle_rad: f64,

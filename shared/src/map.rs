@@ -21,6 +21,8 @@ use std::collections::{BTreeMap, HashSet};
 use thiserror::Error;
 
 pub const MAP_FORMAT: &str = "echomap.map.v1";
+/// Hexagon circumradius of visibility grids unless a map says otherwise (metres).
+pub const DEFAULT_HEX_SIZE_M: f64 = 2.0;
 pub const MAX_TRANSMITTERS: usize = 10_000;
 pub const MAX_COMPONENTS: usize = 64;
 pub const MAX_VISIBILITY_CELLS: usize = 100_000;
@@ -371,6 +373,7 @@ pub mod wire {
     use super::*;
 
     #[derive(Debug, Clone, Serialize, Deserialize)]
+    #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
     #[serde(deny_unknown_fields)]
     pub struct MapDoc {
         pub format: String,
@@ -379,6 +382,7 @@ pub mod wire {
     }
 
     #[derive(Debug, Clone, Serialize, Deserialize)]
+    #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
     #[serde(deny_unknown_fields)]
     pub struct TransmitterDoc {
         pub id: String,
@@ -390,6 +394,7 @@ pub mod wire {
     }
 
     #[derive(Debug, Clone, Serialize, Deserialize)]
+    #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
     #[serde(deny_unknown_fields)]
     pub struct ComponentDoc {
         pub weight: f64,
@@ -398,6 +403,7 @@ pub mod wire {
     }
 
     #[derive(Debug, Clone, Serialize, Deserialize)]
+    #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
     #[serde(deny_unknown_fields)]
     pub struct CellDoc {
         pub q: i32,

@@ -1,0 +1,108 @@
+//! `Application::build` binds the listener (port 0 allowed) and opens the database;
+//! `run_until` serves until a shutdown signal, lets in-flight requests finish, then closes
+//! the database.
+
+use crate::auth::TokenStore;
+use crate::config::Config;
+use crate::state::{AppState, SharedState};
+use crate::storage::Storage;
+use anyhow::Context;
+use std::future::Future;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::net::TcpListener;
+
+#[derive(Debug)]
+pub struct Application {
+    listener: TcpListener,
+    state: SharedState,
+}
+
+impl Application {
+    pub async fn build(config: Config) -> anyhow::Result<Self> {
+        let tokens = match &config.token_file {
+            Some(path) => TokenStore::load(path)?,
+            None => TokenStore::default(),
+        };
+        if tokens.is_empty() {
+            tracing::warn!("no tokens configured: every write will be refused (401)");
+        }
+        let storage = Storage::open(&config.database_url, config.read_connections).await?;
+        let listener = TcpListener::bind(config.listen)
+            .await
+            .with_context(|| format!("cannot listen on {}", config.listen))?;
+        crate::metrics::handle();
+        let state = Arc::new(AppState::new(storage, tokens, config));
+        Ok(Application { listener, state })
+    }
+
+    pub fn local_addr(&self) -> SocketAddr {
+        self.listener
+            .local_addr()
+            .expect("a bound listener has an address")
+    }
+
+    pub fn state(&self) -> SharedState {
+        self.state.clone()
+    }
+
+    /// Serves until `shutdown` resolves, then waits for in-flight requests (at most the
+    /// configured grace period) and closes the database.
+    pub async fn run_until(
+        self,
+        shutdown: impl Future<Output = ()> + Send + 'static,
+    ) -> anyhow::Result<()> {
+        let state = self.state.clone();
+        let grace = Duration::from_secs(state.config.shutdown_grace_s);
+        let (signalled_tx, signalled_rx) = tokio::sync::oneshot::channel::<()>();
+        let router = crate::routes::app(state.clone()).layer(
+            tower_http::trace::TraceLayer::new_for_http()
+                .make_span_with(
+                    tower_http::trace::DefaultMakeSpan::new().level(tracing::Level::DEBUG),
+                )
+                .on_response(
+                    tower_http::trace::DefaultOnResponse::new().level(tracing::Level::DEBUG),
+                ),
+        );
+        let serve = axum::serve(self.listener, router).with_graceful_shutdown(async move {
+            shutdown.await;
+            tracing::info!("shutting down: no new connections, finishing in-flight requests");
+            let _ = signalled_tx.send(());
+        });
+        let serving = tokio::spawn(async move { serve.await });
+        let mut serving = serving;
+        tokio::select! {
+            r = &mut serving => { r.context("server task")?.context("serving")?; }
+            _ = async {
+                let _ = signalled_rx.await;
+                tokio::time::sleep(grace).await;
+            } => {
+                tracing::warn!("grace period over; dropping remaining connections");
+                serving.abort();
+            }
+        }
+        state.storage.close().await;
+        tracing::info!("database closed");
+        Ok(())
+    }
+}
+
+/// Resolves on SIGINT or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! { _ = ctrl_c => {}, _ = term => {} }
+}

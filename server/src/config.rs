@@ -1,0 +1,74 @@
+//! Server configuration: every setting is a flag and an environment variable (clap).
+
+use clap::{Parser, ValueEnum};
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+/// How log lines are written to stderr.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum LogFormat {
+    /// human-readable lines
+    Text,
+    /// one JSON object per line (for log shippers)
+    Json,
+}
+
+/// `echomap-server` settings.
+#[derive(Debug, Clone, Parser)]
+#[command(
+    name = "echomap-server",
+    version,
+    about = "echomap map server: versioned crowd-sourced prior maps over HTTP"
+)]
+pub struct Config {
+    /// Address to listen on; port 0 picks a free port (the bound address is logged).
+    #[arg(long, env = "ECHOMAP_LISTEN", default_value = "127.0.0.1:8080")]
+    pub listen: SocketAddr,
+
+    /// SQLite database URL or plain file path; the file is created if missing.
+    #[arg(
+        long,
+        env = "ECHOMAP_DATABASE_URL",
+        default_value = "sqlite://echomap.db"
+    )]
+    pub database_url: String,
+
+    /// Token file: one `<token> <contributor> <maps>` per line, maps `*` or `a,b,c`; `#` comments.
+    /// Without it every write is refused (401).
+    #[arg(long, env = "ECHOMAP_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+
+    /// Largest accepted request body, bytes (larger → 413).
+    #[arg(long, env = "ECHOMAP_BODY_LIMIT", default_value_t = 8 * 1024 * 1024)]
+    pub body_limit: usize,
+
+    /// Sustained writes per second allowed per token (PUT, POST, DELETE); above → 429.
+    #[arg(long, env = "ECHOMAP_RATE_LIMIT", default_value_t = 20)]
+    pub rate_limit_per_s: u32,
+
+    /// Burst of writes a token may make at once before the rate limit applies.
+    #[arg(long, env = "ECHOMAP_RATE_BURST", default_value_t = 100)]
+    pub rate_limit_burst: u32,
+
+    /// Connections in the read pool (the write path always uses one connection).
+    #[arg(long, env = "ECHOMAP_READ_CONNECTIONS", default_value_t = 4)]
+    pub read_connections: u32,
+
+    /// Log format.
+    #[arg(long, env = "ECHOMAP_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
+    pub log_format: LogFormat,
+
+    /// Seconds in-flight requests get to finish after SIGTERM/SIGINT.
+    #[arg(long, env = "ECHOMAP_SHUTDOWN_GRACE_S", default_value_t = 30)]
+    pub shutdown_grace_s: u64,
+}
+
+impl Config {
+    /// Defaults for a server on `database_url` (tests and embedding).
+    pub fn for_database(database_url: impl Into<String>) -> Self {
+        let mut cfg = Config::parse_from(["echomap-server"]);
+        cfg.database_url = database_url.into();
+        cfg.listen = "127.0.0.1:0".parse().expect("literal address");
+        cfg
+    }
+}

@@ -1,0 +1,201 @@
+//! Shared server state: storage, tokens, limits, the per-map merge locks, the in-flight
+//! idempotency keys and the cache of current map versions.
+
+use crate::auth::{TokenStore, WriteLimiter};
+use crate::config::Config;
+use crate::error::ApiError;
+use crate::storage::{MapRow, Storage};
+use bytes::Bytes;
+use echomap_shared::map::TransmitterMap;
+use echomap_shared::matching::MatchConfig;
+use echomap_shared::merging::MergeConfig;
+use std::collections::{HashMap, HashSet};
+use std::sync::{Arc, Mutex, RwLock};
+
+/// A map version held in memory: parsed for matching, and the rendered `GET` body.
+#[derive(Debug)]
+pub struct CachedVersion {
+    pub version: i64,
+    pub contributions: i64,
+    /// `None` for version 0 (no contribution yet)
+    pub map: Option<Arc<TransmitterMap>>,
+    pub body: Bytes,
+}
+
+#[derive(Debug)]
+pub struct AppState {
+    pub storage: Storage,
+    pub tokens: TokenStore,
+    pub limiter: WriteLimiter,
+    pub config: Config,
+    pub match_cfg: MatchConfig,
+    pub merge_cfg: MergeConfig,
+    map_locks: Mutex<HashMap<i64, Arc<tokio::sync::Mutex<()>>>>,
+    in_flight: Mutex<HashSet<(i64, String, String)>>,
+    /// current version per map id; only ever replaced by a newer version
+    current: RwLock<HashMap<i64, Arc<CachedVersion>>>,
+    /// map name → row, for maps known to exist (names are never deleted or reused)
+    known: RwLock<HashMap<String, MapRow>>,
+}
+
+pub type SharedState = Arc<AppState>;
+
+/// Removes its key from the in-flight set when the request finishes (or is cancelled).
+#[derive(Debug)]
+pub struct InFlight<'a> {
+    state: &'a AppState,
+    key: (i64, String, String),
+}
+
+impl Drop for InFlight<'_> {
+    fn drop(&mut self) {
+        self.state
+            .in_flight
+            .lock()
+            .expect("in-flight set poisoned")
+            .remove(&self.key);
+    }
+}
+
+impl AppState {
+    pub fn new(storage: Storage, tokens: TokenStore, config: Config) -> Self {
+        let limiter = WriteLimiter::new(config.rate_limit_per_s, config.rate_limit_burst);
+        AppState {
+            storage,
+            tokens,
+            limiter,
+            config,
+            match_cfg: MatchConfig::default(),
+            merge_cfg: MergeConfig::default(),
+            map_locks: Mutex::default(),
+            in_flight: Mutex::default(),
+            current: RwLock::default(),
+            known: RwLock::default(),
+        }
+    }
+
+    /// The lock serializing merges of one map in this process.
+    pub fn map_lock(&self, map_id: i64) -> Arc<tokio::sync::Mutex<()>> {
+        self.map_locks
+            .lock()
+            .expect("lock table poisoned")
+            .entry(map_id)
+            .or_default()
+            .clone()
+    }
+
+    /// Registers a request with an idempotency key; 409 while the same key is being processed.
+    pub fn begin(
+        &self,
+        map_id: i64,
+        contributor: &str,
+        key: &str,
+    ) -> Result<InFlight<'_>, ApiError> {
+        let key = (map_id, contributor.to_owned(), key.to_owned());
+        let fresh = self
+            .in_flight
+            .lock()
+            .expect("in-flight set poisoned")
+            .insert(key.clone());
+        if !fresh {
+            return Err(ApiError::Conflict(
+                "a request with this Idempotency-Key is still being processed; retry later".into(),
+            ));
+        }
+        Ok(InFlight { state: self, key })
+    }
+
+    /// The row of an existing map (cached: maps are never deleted).
+    pub async fn map_row(&self, name: &str) -> Result<MapRow, ApiError> {
+        if let Some(row) = self.known.read().expect("poisoned").get(name) {
+            return Ok(row.clone());
+        }
+        let row = self
+            .storage
+            .map(name)
+            .await?
+            .ok_or_else(|| ApiError::NotFound(format!("no map named {name:?}")))?;
+        self.known
+            .write()
+            .expect("poisoned")
+            .insert(name.to_owned(), row.clone());
+        Ok(row)
+    }
+
+    /// The current version of a map, from the cache or the database.
+    pub async fn current(&self, row: &MapRow) -> Result<Arc<CachedVersion>, ApiError> {
+        if let Some(c) = self.current.read().expect("poisoned").get(&row.id) {
+            return Ok(c.clone());
+        }
+        let fresh = self
+            .storage
+            .map(&row.name)
+            .await?
+            .ok_or_else(|| ApiError::NotFound(format!("no map named {:?}", row.name)))?;
+        let cached = if fresh.current_version == 0 {
+            Arc::new(render(&fresh.name, 0, 0, None)?)
+        } else {
+            let v = self
+                .storage
+                .version(fresh.id, fresh.current_version)
+                .await?
+                .ok_or_else(|| anyhow::anyhow!("map {} lacks its current version", fresh.name))?;
+            let map = TransmitterMap::from_json(&v.body)
+                .map_err(|e| anyhow::anyhow!("stored version does not parse: {e}"))?;
+            Arc::new(render(
+                &fresh.name,
+                v.number,
+                fresh.contributions,
+                Some(Arc::new(map)),
+            )?)
+        };
+        Ok(self.install(row.id, cached))
+    }
+
+    /// Drops the cached version of a map (another writer moved it).
+    pub fn forget(&self, map_id: i64) {
+        self.current.write().expect("poisoned").remove(&map_id);
+    }
+
+    /// Makes `c` the cached current version unless a newer one is already there; returns the
+    /// one that is current afterwards.
+    pub fn install(&self, map_id: i64, c: Arc<CachedVersion>) -> Arc<CachedVersion> {
+        let mut cur = self.current.write().expect("poisoned");
+        match cur.get(&map_id) {
+            Some(have) if have.version >= c.version => have.clone(),
+            _ => {
+                cur.insert(map_id, c.clone());
+                c
+            }
+        }
+    }
+}
+
+/// Renders the `GET /v1/maps/{map}` body of a version.
+pub fn render(
+    name: &str,
+    version: i64,
+    contributions: i64,
+    map: Option<Arc<TransmitterMap>>,
+) -> Result<CachedVersion, ApiError> {
+    let doc = match &map {
+        Some(m) => echomap_shared::map::wire::MapDoc::from((**m).clone()),
+        None => echomap_shared::map::wire::MapDoc::from(
+            TransmitterMap::empty(echomap_shared::map::DEFAULT_HEX_SIZE_M)
+                .map_err(|e| anyhow::anyhow!("{e}"))?,
+        ),
+    };
+    let body = serde_json::to_vec(&crate::api::MapVersion {
+        map: name.to_owned(),
+        version,
+        contributions,
+        doc,
+    })
+    .map_err(anyhow::Error::from)?;
+    Ok(CachedVersion {
+        version,
+        contributions,
+        map,
+        body: Bytes::from(body),
+    })
+}

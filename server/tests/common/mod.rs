@@ -1,0 +1,218 @@
+//! Test support: a real server on 127.0.0.1:0 with a fresh SQLite file, synthetic maps with a
+//! known truth, and a database dump to prove that rejected requests change nothing.
+#![allow(dead_code)]
+
+use echomap_server::{Application, Config};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde_json::{Value, json};
+use sqlx::Row;
+use sqlx::sqlite::SqliteConnectOptions;
+use std::path::{Path, PathBuf};
+use tokio::sync::oneshot;
+
+pub const OPERATOR: &str = "operator-token-0123456789";
+pub const ALICE: &str = "alice-token-0123456789ab";
+pub const BOB: &str = "bob-token-0123456789abcd";
+/// may only write the map "other"
+pub const CAROL: &str = "carol-token-0123456789ab";
+
+pub fn token_file(dir: &Path, extra: &[(String, String)]) -> PathBuf {
+    let mut text = format!(
+        "# test tokens\n{OPERATOR} operator *\n{ALICE} alice *\n{BOB} bob *\n{CAROL} carol other\n"
+    );
+    for (token, who) in extra {
+        text.push_str(&format!("{token} {who} *\n"));
+    }
+    let path = dir.join("tokens.txt");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+#[derive(Debug)]
+pub struct TestServer {
+    pub base: String,
+    pub db: PathBuf,
+    pub dir: tempfile::TempDir,
+    stop: Option<oneshot::Sender<()>>,
+    task: Option<tokio::task::JoinHandle<anyhow::Result<()>>>,
+}
+
+impl TestServer {
+    pub async fn start() -> Self {
+        Self::start_with(|_| {}).await
+    }
+
+    pub async fn start_with(tweak: impl FnOnce(&mut Config)) -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("echomap.db");
+        let mut cfg = Config::for_database(db.display().to_string());
+        cfg.token_file = Some(token_file(dir.path(), &[]));
+        cfg.rate_limit_per_s = 10_000;
+        cfg.rate_limit_burst = 10_000;
+        tweak(&mut cfg);
+        let app = Application::build(cfg).await.unwrap();
+        let base = format!("http://{}", app.local_addr());
+        let (stop, rx) = oneshot::channel::<()>();
+        let task = tokio::spawn(app.run_until(async move {
+            let _ = rx.await;
+        }));
+        TestServer {
+            base,
+            db,
+            dir,
+            stop: Some(stop),
+            task: Some(task),
+        }
+    }
+
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    pub async fn stop(mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(t) = self.task.take() {
+            t.await.unwrap().unwrap();
+        }
+    }
+}
+
+pub fn client() -> reqwest::Client {
+    reqwest::Client::builder()
+        .pool_max_idle_per_host(64)
+        .build()
+        .unwrap()
+}
+
+pub async fn create_map(c: &reqwest::Client, s: &TestServer, name: &str) {
+    let r = c
+        .put(s.url(&format!("/v1/maps/{name}")))
+        .bearer_auth(OPERATOR)
+        .send()
+        .await
+        .unwrap();
+    assert!(r.status() == 201 || r.status() == 200, "{}", r.status());
+}
+
+/// A world of `n` transmitters `[x, y, b]` spread over a 60 m × 40 m area.
+pub fn world(seed: u64, n: usize) -> Vec<[f64; 3]> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    (0..n)
+        .map(|_| {
+            let b = if rng.random_bool(0.5) {
+                0.0
+            } else {
+                rng.random_range(0.5..8.0)
+            };
+            [
+                rng.random_range(-30.0..30.0),
+                rng.random_range(-20.0..20.0),
+                b,
+            ]
+        })
+        .collect()
+}
+
+/// A user map of `world` as an agent would upload it: seen in a random agent frame, each
+/// transmitter kept with probability `keep`, positions perturbed by `noise_m`.
+pub fn user_map(world: &[[f64; 3]], seed: u64, keep: f64, noise_m: f64) -> Value {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let angle: f64 = rng.random_range(-3.1..3.1);
+    let (tx, ty): (f64, f64) = (rng.random_range(-20.0..20.0), rng.random_range(-20.0..20.0));
+    let (s, c) = angle.sin_cos();
+    let mut transmitters = Vec::new();
+    for (i, w) in world.iter().enumerate() {
+        if !rng.random_bool(keep) {
+            continue;
+        }
+        let (x, y) = (
+            w[0] + noise_m * normal(&mut rng),
+            w[1] + noise_m * normal(&mut rng),
+        );
+        // agent_from_world: p_a = R(angle)·p_w + t
+        let (xa, ya) = (c * x - s * y + tx, s * x + c * y + ty);
+        let var = 0.05 + noise_m * noise_m;
+        transmitters.push(json!({
+            "id": format!("u{seed}-{i}"),
+            "components": [{"weight": 1.0, "mean": [xa, ya, w[2]],
+                "cov": [[var, 0.0, 0.0], [0.0, var, 0.0], [0.0, 0.0, var]]}],
+            "existence": 0.95,
+            "reliability_m": rng.random_range(5.0..50.0),
+            "visibility": []
+        }));
+    }
+    json!({"format": "echomap.map.v1", "hex_size_m": 2.0, "transmitters": transmitters})
+}
+
+/// A contribution body around a user map.
+pub fn contribution(map: Value, run: &str) -> Value {
+    json!({"contributor": "test-agent", "run": run, "traveled_m": 100.0, "map": map})
+}
+
+fn normal(rng: &mut ChaCha8Rng) -> f64 {
+    // Box–Muller
+    let u1: f64 = rng.random_range(1e-12..1.0);
+    let u2: f64 = rng.random::<f64>();
+    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+}
+
+pub async fn post_contribution(
+    c: &reqwest::Client,
+    s: &TestServer,
+    map: &str,
+    token: &str,
+    key: &str,
+    body: &Value,
+) -> reqwest::Response {
+    c.post(s.url(&format!("/v1/maps/{map}/contributions")))
+        .bearer_auth(token)
+        .header("Idempotency-Key", key)
+        .json(body)
+        .send()
+        .await
+        .unwrap()
+}
+
+/// Every row of every table, as text (a `.dump` without the sqlite3 tool).
+pub async fn dump(db: &Path) -> String {
+    let opts = SqliteConnectOptions::new().filename(db).read_only(true);
+    let pool = sqlx::SqlitePool::connect_with(opts).await.unwrap();
+    let tables: Vec<String> = sqlx::query_scalar(
+        "SELECT name FROM sqlite_master WHERE type = 'table' AND name NOT LIKE 'sqlite_%' ORDER BY name",
+    )
+    .fetch_all(&pool)
+    .await
+    .unwrap();
+    let mut out = String::new();
+    for t in tables {
+        let cols: Vec<String> =
+            sqlx::query(sqlx::AssertSqlSafe(format!("PRAGMA table_info(\"{t}\")")))
+                .fetch_all(&pool)
+                .await
+                .unwrap()
+                .iter()
+                .map(|r| r.get::<String, _>(1))
+                .collect();
+        let expr = cols
+            .iter()
+            .map(|c| format!("quote(\"{c}\")"))
+            .collect::<Vec<_>>()
+            .join(" || ',' || ");
+        let rows: Vec<String> = sqlx::query_scalar(sqlx::AssertSqlSafe(format!(
+            "SELECT {expr} FROM \"{t}\" ORDER BY rowid"
+        )))
+        .fetch_all(&pool)
+        .await
+        .unwrap();
+        out.push_str(&format!("-- {t}\n"));
+        for r in rows {
+            out.push_str(&r);
+            out.push('\n');
+        }
+    }
+    pool.close().await;
+    out
+}
