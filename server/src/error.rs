@@ -97,7 +97,7 @@ impl ApiError {
             Conflict(_) => "conflict",
             PayloadTooLarge { .. } => "payload-too-large",
             UnsupportedMediaType(_) => "unsupported-media-type",
-            Invalid { .. } => "invalid-map",
+            Invalid { .. } => "invalid-field",
             IdempotencyMismatch => "idempotency-key-reused",
             Unmatched { .. } => "unmatched",
             RateLimited { .. } => "rate-limited",

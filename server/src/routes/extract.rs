@@ -58,13 +58,25 @@ pub struct Limit(pub usize);
 pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, ApiError> {
     let de = &mut serde_json::Deserializer::from_slice(bytes);
     serde_path_to_error::deserialize(de).map_err(|e| {
-        let field = e.path().to_string();
+        let path = e.path().to_string();
         let inner = e.into_inner();
         match inner.classify() {
-            serde_json::error::Category::Data => ApiError::Invalid {
-                field: if field == "." { String::new() } else { field },
-                detail: inner.to_string(),
-            },
+            serde_json::error::Category::Data => {
+                let msg = inner.to_string();
+                let mut field = if path == "." { String::new() } else { path };
+                // serde names a missing field in the message, at its parent's path
+                if let Some(name) = msg
+                    .strip_prefix("missing field `")
+                    .and_then(|r| r.split('`').next())
+                {
+                    if !field.is_empty() {
+                        field.push('.');
+                    }
+                    field.push_str(name);
+                }
+                let detail = msg.split(" at line ").next().unwrap_or(&msg).to_owned();
+                ApiError::Invalid { field, detail }
+            }
             _ => ApiError::MalformedJson {
                 detail: inner.to_string(),
             },

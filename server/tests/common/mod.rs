@@ -16,10 +16,12 @@ pub const ALICE: &str = "alice-token-0123456789ab";
 pub const BOB: &str = "bob-token-0123456789abcd";
 /// may only write the map "other"
 pub const CAROL: &str = "carol-token-0123456789ab";
+/// may write the map "hall" only (not an operator)
+pub const DAVE: &str = "dave-token-0123456789abcd";
 
 pub fn token_file(dir: &Path, extra: &[(String, String)]) -> PathBuf {
     let mut text = format!(
-        "# test tokens\n{OPERATOR} operator *\n{ALICE} alice *\n{BOB} bob *\n{CAROL} carol other\n"
+        "# test tokens\n{OPERATOR} operator *\n{ALICE} alice *\n{BOB} bob *\n{CAROL} carol other\n{DAVE} dave hall\n"
     );
     for (token, who) in extra {
         text.push_str(&format!("{token} {who} *\n"));
@@ -34,6 +36,7 @@ pub struct TestServer {
     pub base: String,
     pub db: PathBuf,
     pub dir: tempfile::TempDir,
+    pub state: echomap_server::state::SharedState,
     stop: Option<oneshot::Sender<()>>,
     task: Option<tokio::task::JoinHandle<anyhow::Result<()>>>,
 }
@@ -53,6 +56,7 @@ impl TestServer {
         tweak(&mut cfg);
         let app = Application::build(cfg).await.unwrap();
         let base = format!("http://{}", app.local_addr());
+        let state = app.state();
         let (stop, rx) = oneshot::channel::<()>();
         let task = tokio::spawn(app.run_until(async move {
             let _ = rx.await;
@@ -61,6 +65,7 @@ impl TestServer {
             base,
             db,
             dir,
+            state,
             stop: Some(stop),
             task: Some(task),
         }
