@@ -504,3 +504,307 @@ async fn a_body_over_the_limit_gets_413_and_changes_nothing() {
     assert_eq!(dump(&s.db).await, before);
     s.stop().await;
 }
+
+#[tokio::test]
+async fn concurrent_uploads_lose_no_update() {
+    let s = TestServer::start().await;
+    let c = client();
+    create_map(&c, &s, "crowd").await;
+    let truth = world(3, 25);
+    let tokens = [ALICE, BOB, OPERATOR, DAVE];
+    let mut tasks = Vec::new();
+    for u in 0..32u64 {
+        let (c, url, truth) = (
+            c.clone(),
+            s.url("/v1/maps/crowd/contributions"),
+            truth.clone(),
+        );
+        let token = tokens[(u % 4) as usize];
+        let token = if token == DAVE { ALICE } else { token };
+        tasks.push(tokio::spawn(async move {
+            let mut out = Vec::new();
+            for k in 0..10u64 {
+                let body = contribution(
+                    user_map(&truth, 1000 + u * 10 + k, 0.8, 0.1),
+                    &format!("{u}-{k}"),
+                );
+                let r = c
+                    .post(&url)
+                    .bearer_auth(token)
+                    .header("Idempotency-Key", format!("u{u}-k{k}"))
+                    .json(&body)
+                    .send()
+                    .await
+                    .unwrap();
+                let status = r.status().as_u16();
+                let v: Value = r.json().await.unwrap();
+                out.push((status, v));
+            }
+            out
+        }));
+    }
+    let mut accepted = Vec::new();
+    let mut rejected = 0;
+    for t in tasks {
+        for (status, v) in t.await.unwrap() {
+            assert!(status < 500, "{status}: {v}");
+            match status {
+                201 => accepted.push((
+                    v["contribution"].as_i64().unwrap(),
+                    v["version"].as_i64().unwrap(),
+                )),
+                422 => rejected += 1,
+                other => panic!("unexpected {other}: {v}"),
+            }
+        }
+    }
+    assert_eq!(accepted.len() + rejected, 320);
+    assert!(
+        accepted.len() >= 300,
+        "only {} of 320 accepted",
+        accepted.len()
+    );
+    // versions 1..n without gaps, each produced by exactly one 201
+    let mut versions: Vec<i64> = accepted.iter().map(|a| a.1).collect();
+    versions.sort_unstable();
+    assert_eq!(versions, (1..=accepted.len() as i64).collect::<Vec<_>>());
+    let pool = sqlx::SqlitePool::connect_with(
+        sqlx::sqlite::SqliteConnectOptions::new()
+            .filename(&s.db)
+            .read_only(true),
+    )
+    .await
+    .unwrap();
+    let provenance: Vec<(i64, i64)> =
+        sqlx::query_as("SELECT contribution_id, number FROM versions ORDER BY number")
+            .fetch_all(&pool)
+            .await
+            .unwrap();
+    let mut expected = accepted.clone();
+    expected.sort_by_key(|a| a.1);
+    assert_eq!(
+        provenance, expected,
+        "every 201 in exactly one version's provenance"
+    );
+    let stored: Vec<(i64, String)> =
+        sqlx::query_as("SELECT id, status FROM contributions ORDER BY id")
+            .fetch_all(&pool)
+            .await
+            .unwrap();
+    assert_eq!(stored.len(), 320);
+    for (id, _) in &accepted {
+        assert_eq!(
+            stored
+                .iter()
+                .filter(|(i, st)| i == id && st == "accepted")
+                .count(),
+            1
+        );
+    }
+    // parent chain
+    let parents: Vec<(i64, Option<i64>)> =
+        sqlx::query_as("SELECT number, parent FROM versions ORDER BY number")
+            .fetch_all(&pool)
+            .await
+            .unwrap();
+    for (n, p) in parents {
+        assert_eq!(p, (n > 1).then_some(n - 1));
+    }
+    pool.close().await;
+    let cur: Value = c
+        .get(s.url("/v1/maps/crowd"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(cur["version"], accepted.len() as i64);
+    assert_eq!(cur["contributions"], accepted.len() as i64);
+    s.stop().await;
+}
+
+#[tokio::test]
+async fn an_unrelated_map_is_rejected_and_rollback_equals_merging_the_others() {
+    let s = TestServer::start().await;
+    let c = client();
+    let bodies = seeded_map(&c, &s, "r1").await;
+    let before: Value = c
+        .get(s.url("/v1/maps/r1"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    // poisoning: a random unrelated map
+    for (i, seed) in [901u64, 902, 903].into_iter().enumerate() {
+        let poison = contribution(user_map(&world(seed, 25), seed, 0.9, 0.1), "poison");
+        let r = post_contribution(&c, &s, "r1", BOB, &format!("poison-{i}"), &poison).await;
+        assert_eq!(r.status(), 422);
+        assert!(is_problem(&r));
+        let p: Value = r.json().await.unwrap();
+        assert!(p["type"].as_str().unwrap().ends_with("/unmatched"), "{p}");
+        assert!(p["contribution"].as_i64().is_some());
+    }
+    let after: Value = c
+        .get(s.url("/v1/maps/r1"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(after, before, "a rejected contribution changed the map");
+    let page: Value = c
+        .get(s.url("/v1/maps/r1/contributions"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let statuses: Vec<&str> = page["contributions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x["status"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        statuses,
+        [
+            "accepted", "accepted", "accepted", "rejected", "rejected", "rejected"
+        ]
+    );
+
+    // roll back the second contribution
+    let second = page["contributions"][1]["id"].as_i64().unwrap();
+    let r = c
+        .delete(s.url(&format!("/v1/maps/r1/contributions/{second}")))
+        .bearer_auth(ALICE)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let rb: Value = r.json().await.unwrap();
+    assert_eq!(rb["version"], 4);
+    assert_eq!(rb["dropped"], json!([]));
+    let again = c
+        .delete(s.url(&format!("/v1/maps/r1/contributions/{second}")))
+        .bearer_auth(ALICE)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(again.status(), 409);
+    let rolled: Value = c
+        .get(s.url("/v1/maps/r1"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(rolled["version"], 4);
+    assert_eq!(rolled["contributions"], 2);
+    // history is kept
+    let v2: Value = c
+        .get(s.url("/v1/maps/r1/versions/2"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(v2["version"], 2);
+    assert_eq!(v2["contributions"], 2);
+
+    // the same uploads without the second, merged afresh into another map
+    create_map(&c, &s, "r2").await;
+    for (k, b) in bodies.iter().enumerate() {
+        if k == 1 {
+            continue;
+        }
+        let r = post_contribution(&c, &s, "r2", ALICE, &format!("r2-{k}"), b).await;
+        assert_eq!(r.status(), 201);
+    }
+    let fresh: Value = c
+        .get(s.url("/v1/maps/r2"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(rolled["transmitters"], fresh["transmitters"]);
+    assert_ne!(rolled["transmitters"], before["transmitters"]);
+    s.stop().await;
+}
+
+#[tokio::test]
+async fn etag_changes_exactly_when_the_version_changes() {
+    let s = TestServer::start().await;
+    let c = client();
+    create_map(&c, &s, "hall").await;
+    let etag_of = |r: &reqwest::Response| r.headers()["etag"].to_str().unwrap().to_owned();
+    let r = c.get(s.url("/v1/maps/hall")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    let e0 = etag_of(&r);
+    let v0: Value = r.json().await.unwrap();
+    assert_eq!(v0["version"], 0);
+    assert_eq!(v0["transmitters"], json!([]));
+    let truth = world(1, 25);
+    let mut last = e0.clone();
+    for (k, seed) in [1u64, 2, 3].into_iter().enumerate() {
+        let r = c
+            .get(s.url("/v1/maps/hall"))
+            .header("If-None-Match", &last)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 304);
+        assert_eq!(etag_of(&r), last);
+        assert!(r.bytes().await.unwrap().is_empty());
+        let body = contribution(user_map(&truth, seed, 0.9, 0.1), "e");
+        assert_eq!(
+            post_contribution(&c, &s, "hall", ALICE, &format!("e{k}"), &body)
+                .await
+                .status(),
+            201
+        );
+        let r = c
+            .get(s.url("/v1/maps/hall"))
+            .header("If-None-Match", &last)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 200);
+        let e = etag_of(&r);
+        assert_ne!(e, last);
+        let v: Value = r.json().await.unwrap();
+        assert_eq!(e, format!("\"{}\"", v["version"]));
+        last = e;
+    }
+    // a rejected contribution leaves the ETag alone
+    let poison = contribution(user_map(&world(77, 25), 7, 0.9, 0.1), "p");
+    assert_eq!(
+        post_contribution(&c, &s, "hall", ALICE, "p", &poison)
+            .await
+            .status(),
+        422
+    );
+    let r = c
+        .get(s.url("/v1/maps/hall"))
+        .header("If-None-Match", &last)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 304);
+    let r = c
+        .get(s.url("/v1/maps/hall"))
+        .header("If-None-Match", "W/\"999\", *")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 304);
+    s.stop().await;
+}
