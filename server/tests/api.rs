@@ -808,3 +808,385 @@ async fn etag_changes_exactly_when_the_version_changes() {
     assert_eq!(r.status(), 304);
     s.stop().await;
 }
+
+fn resolve<'a>(doc: &'a Value, r: &str) -> Option<&'a Value> {
+    let path = r.strip_prefix("#/")?;
+    path.split('/').try_fold(doc, |v, k| v.get(k))
+}
+
+fn all_refs(v: &Value, out: &mut Vec<String>) {
+    match v {
+        Value::Object(m) => {
+            for (k, x) in m {
+                if k == "$ref" {
+                    out.push(x.as_str().unwrap().to_owned());
+                }
+                all_refs(x, out);
+            }
+        }
+        Value::Array(a) => a.iter().for_each(|x| all_refs(x, out)),
+        _ => {}
+    }
+}
+
+#[tokio::test]
+async fn openapi_document_is_valid_and_lists_every_route() {
+    let s = TestServer::start().await;
+    let c = client();
+    seeded_map(&c, &s, "hall").await;
+    let doc: Value = c
+        .get(s.url("/openapi.json"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert!(doc["openapi"].as_str().unwrap().starts_with("3."));
+    assert!(doc["info"]["title"].is_string() && doc["info"]["version"].is_string());
+    let mut refs = Vec::new();
+    all_refs(&doc, &mut refs);
+    assert!(!refs.is_empty());
+    for r in &refs {
+        assert!(resolve(&doc, r).is_some(), "dangling $ref {r}");
+    }
+    let paths = doc["paths"].as_object().unwrap();
+    let mut documented = Vec::new();
+    for (path, item) in paths {
+        for (method, op) in item.as_object().unwrap() {
+            if !["get", "put", "post", "delete", "patch"].contains(&method.as_str()) {
+                continue;
+            }
+            assert!(
+                op["responses"].as_object().is_some_and(|r| !r.is_empty()),
+                "{method} {path}"
+            );
+            documented.push(format!("{} {path}", method.to_uppercase()));
+        }
+    }
+    documented.sort();
+    let mut expected = vec![
+        "GET /healthz",
+        "GET /readyz",
+        "GET /metrics",
+        "GET /v1/maps",
+        "PUT /v1/maps/{map}",
+        "GET /v1/maps/{map}",
+        "GET /v1/maps/{map}/versions/{n}",
+        "POST /v1/maps/{map}/contributions",
+        "POST /v1/maps/{map}/match",
+        "GET /v1/maps/{map}/contributions",
+        "DELETE /v1/maps/{map}/contributions/{id}",
+    ];
+    expected.sort();
+    assert_eq!(documented, expected);
+    // every documented operation is served (reaches its handler, not the 404 fallback / 405)
+    for op in &documented {
+        let (method, path) = op.split_once(' ').unwrap();
+        let url = s.url(
+            &path
+                .replace("{map}", "hall")
+                .replace("{n}", "1")
+                .replace("{id}", "1"),
+        );
+        let r = c
+            .request(method.parse().unwrap(), url)
+            .bearer_auth(OPERATOR)
+            .header("Idempotency-Key", "openapi-probe")
+            .header("content-type", "application/json")
+            .body("{}")
+            .send()
+            .await
+            .unwrap();
+        assert_ne!(r.status(), 405, "{op}");
+        let text = r.text().await.unwrap();
+        assert!(!text.contains("no such route"), "{op}: {text}");
+    }
+    let docs = c.get(s.url("/docs/")).send().await.unwrap();
+    assert_eq!(docs.status(), 200);
+    assert!(docs.text().await.unwrap().contains("swagger"));
+    s.stop().await;
+}
+
+#[tokio::test]
+async fn tokens_scopes_rate_limits_and_private_maps() {
+    let s = TestServer::start_with(|cfg| {
+        cfg.rate_limit_per_s = 1;
+        cfg.rate_limit_burst = 3;
+    })
+    .await;
+    let c = client();
+    // the burst is 3 writes, the 4th is limited
+    for name in ["a", "b", "c"] {
+        let r = c
+            .put(s.url(&format!("/v1/maps/{name}")))
+            .bearer_auth(BOB)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 201);
+    }
+    let r = c
+        .put(s.url("/v1/maps/d"))
+        .bearer_auth(BOB)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 429);
+    assert!(
+        r.headers()["retry-after"]
+            .to_str()
+            .unwrap()
+            .parse::<u64>()
+            .unwrap()
+            >= 1
+    );
+    assert!(is_problem(&r));
+    // another token has its own budget; idempotent create answers 200
+    let r = c
+        .put(s.url("/v1/maps/a"))
+        .bearer_auth(ALICE)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    // a private map
+    let r = c
+        .put(s.url("/v1/maps/secret"))
+        .bearer_auth(ALICE)
+        .json(&json!({"private": true}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let r = c
+        .put(s.url("/v1/maps/secret"))
+        .bearer_auth(ALICE)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 409, "same name, other settings");
+    let r = c.get(s.url("/v1/maps/secret")).send().await.unwrap();
+    assert_eq!(r.status(), 401);
+    assert!(
+        r.headers()["www-authenticate"]
+            .to_str()
+            .unwrap()
+            .starts_with("Bearer")
+    );
+    let r = c
+        .get(s.url("/v1/maps/secret"))
+        .bearer_auth(CAROL)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 403);
+    let r = c
+        .get(s.url("/v1/maps/secret"))
+        .bearer_auth(OPERATOR)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let public: Value = c
+        .get(s.url("/v1/maps"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let names: Vec<&str> = public["maps"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| m["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["a", "b", "c"]);
+    let all: Value = c
+        .get(s.url("/v1/maps"))
+        .bearer_auth(OPERATOR)
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(all["maps"].as_array().unwrap().len(), 4);
+    s.stop().await;
+}
+
+#[tokio::test]
+async fn metrics_count_requests_merges_and_rejections() {
+    let s = TestServer::start().await;
+    let c = client();
+    seeded_map(&c, &s, "metered").await;
+    let poison = contribution(user_map(&world(55, 25), 5, 0.9, 0.1), "p");
+    assert_eq!(
+        post_contribution(&c, &s, "metered", ALICE, "m-p", &poison)
+            .await
+            .status(),
+        422
+    );
+    let text = c
+        .get(s.url("/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    for needle in [
+        "http_requests_total{",
+        "route=\"/v1/maps/{map}/contributions\"",
+        "status=\"201\"",
+        "status=\"422\"",
+        "http_request_duration_seconds_bucket{",
+        "echomap_merges_total",
+        "echomap_rejections_total",
+        "echomap_integrate_duration_seconds_bucket",
+        "echomap_map_transmitters{map=\"metered\"}",
+    ] {
+        assert!(text.contains(needle), "missing {needle} in\n{text}");
+    }
+    s.stop().await;
+}
+
+#[tokio::test]
+async fn match_endpoint_returns_the_agent_from_map_transform_and_writes_nothing() {
+    let s = TestServer::start().await;
+    let c = client();
+    seeded_map(&c, &s, "hall").await;
+    let before = dump(&s.db).await;
+    let truth = world(1, 25);
+    let partial = user_map(&truth, 4242, 0.5, 0.05);
+    let r = c
+        .post(s.url("/v1/maps/hall/match"))
+        .json(&json!({"map": partial}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let m: Value = r.json().await.unwrap();
+    assert_eq!(m["accepted"], true, "{m}");
+    // agent_from_map ∘ map_from_agent = identity
+    let t = |v: &Value| {
+        (
+            v["angle_rad"].as_f64().unwrap(),
+            v["translation"][0].as_f64().unwrap(),
+            v["translation"][1].as_f64().unwrap(),
+        )
+    };
+    let (a1, x1, y1) = t(&m["agent_from_map"]);
+    let (a2, x2, y2) = t(&m["map_from_agent"]);
+    let (s1, c1) = a1.sin_cos();
+    let (xc, yc) = (c1 * x2 - s1 * y2 + x1, s1 * x2 + c1 * y2 + y1);
+    assert!(
+        ((a1 + a2 + 3.0 * std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI)
+            - std::f64::consts::PI)
+            .abs()
+            < 1e-9
+    );
+    assert!(xc.abs() < 1e-9 && yc.abs() < 1e-9);
+    // correspondences pair views of the same world transmitter
+    for p in m["correspondences"].as_array().unwrap() {
+        let wa = p["agent"].as_str().unwrap().split('-').nth(1).unwrap();
+        let wm = p["map"].as_str().unwrap().split('-').nth(1).unwrap();
+        assert_eq!(wa, wm);
+    }
+    let unrelated = user_map(&world(31, 25), 1, 0.9, 0.1);
+    let r = c
+        .post(s.url("/v1/maps/hall/match"))
+        .json(&json!({"map": unrelated}))
+        .send()
+        .await
+        .unwrap();
+    let m: Value = r.json().await.unwrap();
+    assert_eq!(m["accepted"], false);
+    assert!(m["reason"].is_string());
+    assert_eq!(dump(&s.db).await, before);
+    s.stop().await;
+}
+
+#[tokio::test]
+async fn sqlite_settings_are_read_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("fresh.db");
+    let storage = echomap_server::storage::Storage::open(&db.display().to_string(), 2)
+        .await
+        .unwrap();
+    assert!(db.exists(), "the database file is created");
+    for p in storage.pragmas().await.unwrap() {
+        assert_eq!(p.journal_mode, "wal");
+        assert_eq!(p.synchronous, 2, "synchronous=FULL");
+        assert!(p.busy_timeout_ms >= 5000, "{}", p.busy_timeout_ms);
+        assert_eq!(p.foreign_keys, 1);
+    }
+    assert!(storage.ready().await.unwrap());
+    storage.close().await;
+}
+
+mod oneshot {
+    //! Handler tests through `tower::ServiceExt::oneshot`, no socket.
+    use axum::body::Body;
+    use axum::http::{Request, StatusCode};
+    use echomap_server::auth::TokenStore;
+    use echomap_server::state::AppState;
+    use echomap_server::{Config, routes, storage::Storage};
+    use http_body_util::BodyExt;
+    use std::sync::Arc;
+    use tower::ServiceExt;
+
+    async fn app() -> (axum::Router, tempfile::TempDir) {
+        let dir = tempfile::tempdir().unwrap();
+        let url = dir.path().join("h.db").display().to_string();
+        let storage = Storage::open(&url, 1).await.unwrap();
+        let tokens = TokenStore::parse("op-token-0123456789 op *\n").unwrap();
+        let state = Arc::new(AppState::new(storage, tokens, Config::for_database(url)));
+        (routes::app(state), dir)
+    }
+
+    #[tokio::test]
+    async fn health_ready_and_fallback() {
+        let (app, _dir) = app().await;
+        let r = app
+            .clone()
+            .oneshot(Request::get("/healthz").body(Body::empty()).unwrap())
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::OK);
+        let r = app
+            .clone()
+            .oneshot(Request::get("/readyz").body(Body::empty()).unwrap())
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::OK);
+        let r = app
+            .clone()
+            .oneshot(Request::get("/v2/nothing").body(Body::empty()).unwrap())
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::NOT_FOUND);
+        assert_eq!(r.headers()["content-type"], "application/problem+json");
+        let r = app
+            .clone()
+            .oneshot(Request::put("/v1/maps/x").body(Body::empty()).unwrap())
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::UNAUTHORIZED);
+        let r = app
+            .oneshot(
+                Request::put("/v1/maps/x")
+                    .header("authorization", "Bearer op-token-0123456789")
+                    .body(Body::empty())
+                    .unwrap(),
+            )
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::CREATED);
+        let body: serde_json::Value =
+            serde_json::from_slice(&r.into_body().collect().await.unwrap().to_bytes()).unwrap();
+        assert_eq!(body["name"], "x");
+        assert_eq!(body["version"], 0);
+    }
+}
