@@ -20,6 +20,9 @@ use serde::Deserialize;
 use std::sync::Arc;
 use std::time::Instant;
 
+/// Renders the stored response once the contribution id and new version are known.
+type Respond = Box<dyn FnOnce(i64, Option<i64>) -> (u16, Vec<u8>) + Send>;
+
 /// Validates a wire map; errors name the field under `prefix`.
 pub fn validate_map(doc: MapDoc, prefix: &str) -> ApiResult<TransmitterMap> {
     TransmitterMap::from_doc(doc).map_err(|e| ApiError::Invalid {
@@ -180,10 +183,7 @@ pub async fn post_contribution(
             added: None,
         };
         let prior_map = cur.map.clone();
-        let (new_map, response): (
-            Option<TransmitterMap>,
-            Box<dyn FnOnce(i64, Option<i64>) -> (u16, Vec<u8>) + Send>,
-        ) = match outcome {
+        let (new_map, response): (Option<TransmitterMap>, Respond) = match outcome {
             Outcome::Initialized { map } => {
                 c.transform = Some(
                     serde_json::to_string(&Transform2::IDENTITY).map_err(anyhow::Error::from)?,

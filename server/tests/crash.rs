@@ -1,0 +1,229 @@
+//! Crash durability: a child `echomap-server` process is SIGKILLed at random moments during a
+//! stream of uploads and restarted on the same SQLite file. Every upload answered 201 must
+//! survive, the file must pass `PRAGMA integrity_check`, and uploads retried with their
+//! Idempotency-Key after a crash must not be merged twice.
+
+mod common;
+
+use common::*;
+use rand::{RngExt, SeedableRng};
+use serde_json::Value;
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
+use std::process::Stdio;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Duration;
+use tokio::io::{AsyncBufReadExt, BufReader};
+use tokio::process::{Child, Command};
+
+async fn spawn_server(db: &Path, tokens: &Path) -> (Child, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_echomap-server"))
+        .args(["--listen", "127.0.0.1:0", "--database-url"])
+        .arg(db)
+        .arg("--token-file")
+        .arg(tokens)
+        .env("RUST_LOG", "warn")
+        .env("ECHOMAP_RATE_LIMIT", "100000")
+        .env("ECHOMAP_RATE_BURST", "100000")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .kill_on_drop(true)
+        .spawn()
+        .expect("start echomap-server");
+    let stdout = child.stdout.take().unwrap();
+    let mut line = String::new();
+    BufReader::new(stdout).read_line(&mut line).await.unwrap();
+    let base = line
+        .trim()
+        .strip_prefix("echomap-server listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+        .to_owned();
+    (child, base)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn acknowledged_contributions_survive_sigkill() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("crash.db");
+    let tokens = token_file(dir.path(), &[]);
+    let c = reqwest::Client::builder()
+        .timeout(Duration::from_secs(30))
+        .build()
+        .unwrap();
+    let truth = world(8, 25);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2026);
+    // key → body; acknowledged key → the 201 body
+    let mut pending: BTreeMap<String, Value> = BTreeMap::new();
+    let mut acked: BTreeMap<String, Value> = BTreeMap::new();
+    let mut next = 0u64;
+    let rounds = 20;
+    let mut interrupted = 0;
+    for round in 0..rounds {
+        let (mut child, base) = spawn_server(&db, &tokens).await;
+        if round == 0 {
+            let r = c
+                .put(format!("{base}/v1/maps/durable"))
+                .bearer_auth(OPERATOR)
+                .send()
+                .await
+                .unwrap();
+            assert_eq!(r.status(), 201);
+        }
+        // each stream first retries unacknowledged uploads of earlier rounds, then uploads new
+        // ones until the server dies under it
+        let kill_after = Duration::from_millis(rng.random_range(20..400));
+        let counter = Arc::new(AtomicU64::new(next));
+        let retries: Vec<(String, Value)> = pending
+            .iter()
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect();
+        let mut streams = Vec::new();
+        for s in 0..4 {
+            let mine: Vec<(String, Value)> = retries.iter().skip(s).step_by(4).cloned().collect();
+            let (c, base, truth, counter) =
+                (c.clone(), base.clone(), truth.clone(), counter.clone());
+            streams.push(tokio::spawn(async move {
+                let mut got = Vec::new();
+                let mut sent = Vec::new();
+                let mut mine = mine.into_iter();
+                loop {
+                    let (key, body) = mine.next().unwrap_or_else(|| {
+                        let n = counter.fetch_add(1, Ordering::SeqCst);
+                        let body = contribution(
+                            user_map(&truth, 5000 + n, 0.8, 0.1),
+                            &format!("crash-{n}"),
+                        );
+                        (format!("key-{n}"), body)
+                    });
+                    sent.push((key.clone(), body.clone()));
+                    let r = c
+                        .post(format!("{base}/v1/maps/durable/contributions"))
+                        .bearer_auth(ALICE)
+                        .header("Idempotency-Key", &key)
+                        .json(&body)
+                        .send()
+                        .await;
+                    let Ok(r) = r else { break };
+                    let status = r.status().as_u16();
+                    let Ok(v) = r.json::<Value>().await else {
+                        break;
+                    };
+                    got.push((key, status, v));
+                }
+                (sent, got)
+            }));
+        }
+        tokio::time::sleep(kill_after).await;
+        child.start_kill().unwrap(); // SIGKILL
+        child.wait().await.unwrap();
+        next = counter.load(Ordering::SeqCst);
+        for s in streams {
+            let (sent, got) = s.await.unwrap();
+            pending.extend(sent);
+            for (key, status, v) in got {
+                assert!(status == 201 || status == 422, "{status}: {v}");
+                pending.remove(&key);
+                if status == 201 {
+                    if let Some(prev) = acked.get(&key) {
+                        assert_eq!(prev, &v, "a retry got another answer");
+                    }
+                    acked.insert(key, v);
+                }
+            }
+        }
+        interrupted += usize::from(!pending.is_empty());
+    }
+    eprintln!(
+        "{} acknowledged, {interrupted} of {rounds} rounds killed mid-stream",
+        acked.len()
+    );
+    assert!(
+        interrupted >= rounds / 2,
+        "only {interrupted} rounds were killed mid-stream"
+    );
+    assert!(
+        acked.len() >= 20,
+        "only {} uploads acknowledged over {rounds} rounds",
+        acked.len()
+    );
+
+    // the file after the last kill
+    let pool =
+        sqlx::SqlitePool::connect_with(sqlx::sqlite::SqliteConnectOptions::new().filename(&db))
+            .await
+            .unwrap();
+    let check: String = sqlx::query_scalar("PRAGMA integrity_check")
+        .fetch_one(&pool)
+        .await
+        .unwrap();
+    assert_eq!(check, "ok");
+    let rows: Vec<(String, String, i64)> = sqlx::query_as(
+        "SELECT c.idempotency_key, c.status, v.number FROM contributions c
+         LEFT JOIN versions v ON v.contribution_id = c.id AND v.kind = 'merge'
+         WHERE c.status = 'accepted' ORDER BY v.number",
+    )
+    .fetch_all(&pool)
+    .await
+    .unwrap();
+    let stored: BTreeSet<&str> = rows.iter().map(|r| r.0.as_str()).collect();
+    assert_eq!(stored.len(), rows.len(), "an upload was merged twice");
+    for (key, v) in &acked {
+        assert!(stored.contains(key.as_str()), "acknowledged {key} lost");
+        let row = rows.iter().find(|r| &r.0 == key).unwrap();
+        assert_eq!(v["version"].as_i64().unwrap(), row.2, "{key}");
+    }
+    let numbers: Vec<i64> = rows.iter().map(|r| r.2).collect();
+    assert_eq!(
+        numbers,
+        (1..=rows.len() as i64).collect::<Vec<_>>(),
+        "versions have gaps"
+    );
+    pool.close().await;
+
+    // and a restarted server serves it
+    let (mut child, base) = spawn_server(&db, &tokens).await;
+    let cur: Value = c
+        .get(format!("{base}/v1/maps/durable"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(cur["version"].as_i64().unwrap(), rows.len() as i64);
+    child.start_kill().unwrap();
+    child.wait().await.unwrap();
+}
+
+#[tokio::test]
+async fn sigterm_shuts_down_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("term.db");
+    let tokens = token_file(dir.path(), &[]);
+    let (mut child, base) = spawn_server(&db, &tokens).await;
+    let c = client();
+    assert_eq!(
+        c.get(format!("{base}/readyz"))
+            .send()
+            .await
+            .unwrap()
+            .status(),
+        200
+    );
+    let pid = child.id().unwrap().to_string();
+    let status = std::process::Command::new("kill")
+        .args(["-TERM", &pid])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let exit = tokio::time::timeout(Duration::from_secs(20), child.wait())
+        .await
+        .unwrap()
+        .unwrap();
+    assert!(exit.success(), "{exit:?}");
+    assert!(
+        c.get(format!("{base}/healthz")).send().await.is_err(),
+        "still accepting after SIGTERM"
+    );
+}
