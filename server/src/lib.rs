@@ -13,6 +13,7 @@ pub mod model;
 pub mod routes;
 pub mod state;
 pub mod storage;
+pub mod synth;
 
 pub use app::{Application, shutdown_signal};
 pub use config::{Config, LogFormat};

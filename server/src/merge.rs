@@ -68,9 +68,8 @@ pub fn integrate(
         &matched.correspondences,
         merge_cfg,
     )?;
-    // Serve only what validates: finite numbers, SPD covariances, limits.
-    let map = TransmitterMap::from_json(&serde_json::to_string(&map)?)
-        .map_err(|e| anyhow::anyhow!("merged map failed validation: {e}"))?;
+    // merge_maps builds its result through TransmitterMap::new, which validates it (finite
+    // numbers, SPD covariances, limits): nothing invalid can be stored or served.
     Ok(Outcome::Merged {
         map,
         matched,

@@ -142,11 +142,12 @@ impl AppState {
                 .ok_or_else(|| anyhow::anyhow!("map {} lacks its current version", fresh.name))?;
             let map = TransmitterMap::from_json(&v.body)
                 .map_err(|e| anyhow::anyhow!("stored version does not parse: {e}"))?;
-            Arc::new(render(
+            Arc::new(render_json(
                 &fresh.name,
                 v.number,
                 fresh.contributions,
                 Some(Arc::new(map)),
+                &v.body,
             )?)
         };
         Ok(self.install(row.id, cached))
@@ -171,6 +172,37 @@ impl AppState {
     }
 }
 
+/// Renders the `GET /v1/maps/{map}` body of a version from the map's serialized
+/// `echomap.map.v1` document (`doc_json`, as stored): the identity members are spliced in
+/// front, so the map is serialized once per version.
+pub fn render_json(
+    name: &str,
+    version: i64,
+    contributions: i64,
+    map: Option<Arc<TransmitterMap>>,
+    doc_json: &str,
+) -> Result<CachedVersion, ApiError> {
+    let head = serde_json::to_string(&serde_json::json!({
+        "map": name, "version": version, "contributions": contributions
+    }))
+    .map_err(anyhow::Error::from)?;
+    let rest = doc_json
+        .strip_prefix('{')
+        .ok_or_else(|| anyhow::anyhow!("a map document is a JSON object"))?;
+    let mut body = String::with_capacity(head.len() + doc_json.len() + 1);
+    body.push_str(&head[..head.len() - 1]);
+    if rest.trim_start() != "}" {
+        body.push(',');
+    }
+    body.push_str(rest);
+    Ok(CachedVersion {
+        version,
+        contributions,
+        map,
+        body: Bytes::from(body),
+    })
+}
+
 /// Renders the `GET /v1/maps/{map}` body of a version.
 pub fn render(
     name: &str,
@@ -178,24 +210,13 @@ pub fn render(
     contributions: i64,
     map: Option<Arc<TransmitterMap>>,
 ) -> Result<CachedVersion, ApiError> {
-    let doc = match &map {
-        Some(m) => echomap_shared::map::wire::MapDoc::from((**m).clone()),
-        None => echomap_shared::map::wire::MapDoc::from(
-            TransmitterMap::empty(echomap_shared::map::DEFAULT_HEX_SIZE_M)
+    let doc_json = match &map {
+        Some(m) => serde_json::to_string(&**m),
+        None => serde_json::to_string(
+            &TransmitterMap::empty(echomap_shared::map::DEFAULT_HEX_SIZE_M)
                 .map_err(|e| anyhow::anyhow!("{e}"))?,
         ),
-    };
-    let body = serde_json::to_vec(&crate::api::MapVersion {
-        map: name.to_owned(),
-        version,
-        contributions,
-        doc,
-    })
+    }
     .map_err(anyhow::Error::from)?;
-    Ok(CachedVersion {
-        version,
-        contributions,
-        map,
-        body: Bytes::from(body),
-    })
+    render_json(name, version, contributions, map, &doc_json)
 }

@@ -8,7 +8,7 @@ use crate::api::{
 use crate::error::{ApiError, ApiResult, PROBLEM_JSON, Problem, problem_body};
 use crate::merge::{Outcome, correspondences, integrate, replay, seed_of, sha256_hex};
 use crate::model::{IdempotencyKey, MapName};
-use crate::state::{SharedState, render};
+use crate::state::{SharedState, render_json};
 use crate::storage::{CommitError, NewContribution, NewVersion, StoredResponse};
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -282,9 +282,16 @@ pub async fn post_contribution(
                 if let Some(m) = new_map {
                     let n = cur.version + 1;
                     let contributions = cur.contributions + 1;
+                    let doc = version.as_ref().map_or("{}", |v| v.body.as_str());
                     app.install(
                         row.id,
-                        Arc::new(render(name.as_str(), n, contributions, Some(Arc::new(m)))?),
+                        Arc::new(render_json(
+                            name.as_str(),
+                            n,
+                            contributions,
+                            Some(Arc::new(m)),
+                            doc,
+                        )?),
                     );
                     metrics::counter!("echomap_merges_total").increment(1);
                     metrics::gauge!("echomap_map_transmitters", "map" => name.to_string())
@@ -478,11 +485,12 @@ pub async fn delete_contribution(
                 let n_tx = rebuilt.len();
                 app.install(
                     row.id,
-                    Arc::new(render(
+                    Arc::new(render_json(
                         name.as_str(),
                         n,
                         contributions,
                         Some(Arc::new(rebuilt)),
+                        &v.body,
                     )?),
                 );
                 tracing::info!(map = %name, contribution = id, version = n, ?dropped, "contribution rolled back");

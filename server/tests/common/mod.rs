@@ -3,9 +3,7 @@
 #![allow(dead_code)]
 
 use echomap_server::{Application, Config};
-use rand::{RngExt, SeedableRng};
-use rand_chacha::ChaCha8Rng;
-use serde_json::{Value, json};
+use serde_json::Value;
 use sqlx::Row;
 use sqlx::sqlite::SqliteConnectOptions;
 use std::path::{Path, PathBuf};
@@ -102,66 +100,11 @@ pub async fn create_map(c: &reqwest::Client, s: &TestServer, name: &str) {
     assert!(r.status() == 201 || r.status() == 200, "{}", r.status());
 }
 
-/// A world of `n` transmitters `[x, y, b]` spread over a 60 m × 40 m area.
-pub fn world(seed: u64, n: usize) -> Vec<[f64; 3]> {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    (0..n)
-        .map(|_| {
-            let b = if rng.random_bool(0.5) {
-                0.0
-            } else {
-                rng.random_range(0.5..8.0)
-            };
-            [
-                rng.random_range(-30.0..30.0),
-                rng.random_range(-20.0..20.0),
-                b,
-            ]
-        })
-        .collect()
-}
+pub use echomap_server::synth::{contribution, world};
 
-/// A user map of `world` as an agent would upload it: seen in a random agent frame, each
-/// transmitter kept with probability `keep`, positions perturbed by `noise_m`.
+/// A user map of `world` (one component per transmitter); see [`echomap_server::synth`].
 pub fn user_map(world: &[[f64; 3]], seed: u64, keep: f64, noise_m: f64) -> Value {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let angle: f64 = rng.random_range(-3.1..3.1);
-    let (tx, ty): (f64, f64) = (rng.random_range(-20.0..20.0), rng.random_range(-20.0..20.0));
-    let (s, c) = angle.sin_cos();
-    let mut transmitters = Vec::new();
-    for (i, w) in world.iter().enumerate() {
-        if !rng.random_bool(keep) {
-            continue;
-        }
-        let (x, y) = (
-            w[0] + noise_m * normal(&mut rng),
-            w[1] + noise_m * normal(&mut rng),
-        );
-        // agent_from_world: p_a = R(angle)·p_w + t
-        let (xa, ya) = (c * x - s * y + tx, s * x + c * y + ty);
-        let var = 0.05 + noise_m * noise_m;
-        transmitters.push(json!({
-            "id": format!("u{seed}-{i}"),
-            "components": [{"weight": 1.0, "mean": [xa, ya, w[2]],
-                "cov": [[var, 0.0, 0.0], [0.0, var, 0.0], [0.0, 0.0, var]]}],
-            "existence": 0.95,
-            "reliability_m": rng.random_range(5.0..50.0),
-            "visibility": []
-        }));
-    }
-    json!({"format": "echomap.map.v1", "hex_size_m": 2.0, "transmitters": transmitters})
-}
-
-/// A contribution body around a user map.
-pub fn contribution(map: Value, run: &str) -> Value {
-    json!({"contributor": "test-agent", "run": run, "traveled_m": 100.0, "map": map})
-}
-
-fn normal(rng: &mut ChaCha8Rng) -> f64 {
-    // Box–Muller
-    let u1: f64 = rng.random_range(1e-12..1.0);
-    let u2: f64 = rng.random::<f64>();
-    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+    echomap_server::synth::user_map(world, seed, keep, noise_m, 1)
 }
 
 pub async fn post_contribution(
