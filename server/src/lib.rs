@@ -14,6 +14,7 @@ pub mod routes;
 pub mod state;
 pub mod storage;
 pub mod synth;
+pub mod worker;
 
 pub use app::{Application, shutdown_signal};
 pub use config::{Config, LogFormat};

@@ -2,7 +2,7 @@
 //! `GET /metrics`): `http_requests_total` and `http_request_duration_seconds` by route, method
 //! and status; `echomap_merges_total`, `echomap_rejections_total`,
 //! `echomap_integrate_duration_seconds` (match + merge), `echomap_match_duration_seconds`
-//! (read-only matches), `echomap_map_transmitters` per map.
+//! (read-only matches), `echomap_map_transmitters` per map, `echomap_commit_batch_size` (uploads per group commit).
 
 use axum::extract::{MatchedPath, Request};
 use axum::middleware::Next;

@@ -31,6 +31,7 @@ pub struct AppState {
     pub match_cfg: MatchConfig,
     pub merge_cfg: MergeConfig,
     map_locks: Mutex<HashMap<i64, Arc<tokio::sync::Mutex<()>>>>,
+    merge_queues: Mutex<HashMap<i64, tokio::sync::mpsc::UnboundedSender<crate::worker::Job>>>,
     in_flight: Mutex<HashSet<(i64, String, String)>>,
     /// current version per map id; only ever replaced by a newer version
     current: RwLock<HashMap<i64, Arc<CachedVersion>>>,
@@ -68,6 +69,7 @@ impl AppState {
             match_cfg: MatchConfig::default(),
             merge_cfg: MergeConfig::default(),
             map_locks: Mutex::default(),
+            merge_queues: Mutex::default(),
             in_flight: Mutex::default(),
             current: RwLock::default(),
             known: RwLock::default(),
@@ -81,6 +83,20 @@ impl AppState {
             .expect("lock table poisoned")
             .entry(map_id)
             .or_default()
+            .clone()
+    }
+
+    /// The queue of a map's merge worker, started by `start` on first use.
+    pub fn merge_queue(
+        &self,
+        map_id: i64,
+        start: impl FnOnce() -> tokio::sync::mpsc::UnboundedSender<crate::worker::Job>,
+    ) -> tokio::sync::mpsc::UnboundedSender<crate::worker::Job> {
+        self.merge_queues
+            .lock()
+            .expect("queue table poisoned")
+            .entry(map_id)
+            .or_insert_with(start)
             .clone()
     }
 

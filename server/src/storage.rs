@@ -86,12 +86,31 @@ pub struct NewContribution {
     pub accepted: bool,
     pub reason: Option<String>,
     pub transmitters: i64,
-    pub matched_version: i64,
     pub transform: Option<String>,
     pub inliers: Option<i64>,
     pub score: Option<f64>,
     pub merged: Option<i64>,
     pub added: Option<i64>,
+}
+
+/// The stored response of a contribution, rendered once its id and version are known.
+pub type Respond = Box<dyn FnOnce(i64, Option<i64>) -> (u16, Vec<u8>) + Send>;
+
+/// One contribution of a batch commit.
+pub struct PendingCommit {
+    pub contribution: NewContribution,
+    /// the merged map it produced (accepted contributions)
+    pub version: Option<NewVersion>,
+    pub respond: Respond,
+}
+
+impl std::fmt::Debug for PendingCommit {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PendingCommit")
+            .field("contribution", &self.contribution)
+            .field("version", &self.version.as_ref().map(|v| v.transmitters))
+            .finish()
+    }
 }
 
 /// A merged map to commit as the next version.
@@ -106,9 +125,12 @@ pub enum CommitError {
     /// another writer committed a version since this one was matched: re-match and retry
     #[error("map version moved from {expected} to {actual}")]
     VersionMoved { expected: i64, actual: i64 },
-    /// the same (contributor, Idempotency-Key) was committed meanwhile (another replica)
-    #[error("idempotency key already used")]
-    DuplicateKey,
+    /// entry `index`'s (contributor, Idempotency-Key) was committed meanwhile (another replica)
+    #[error("idempotency key of batch entry {index} already used")]
+    DuplicateKey { index: usize },
+    /// the contribution to roll back is no longer accepted
+    #[error("contribution no longer accepted")]
+    NotAccepted,
     #[error(transparent)]
     Db(#[from] sqlx::Error),
 }
@@ -291,17 +313,16 @@ impl Storage {
         .await
     }
 
-    /// Commits a contribution (and, when accepted, the version it produced) in one
-    /// `BEGIN IMMEDIATE` transaction, provided the map is still at `expected_version`.
-    /// `respond(contribution id, new version)` renders the response stored with it.
-    pub async fn commit_contribution(
+    /// Commits a batch of contributions (each accepted one with the version it produced, in
+    /// order) in one `BEGIN IMMEDIATE` transaction — one fsync for the batch — provided the
+    /// map is still at `expected_version`. Each entry's `respond(contribution id, new version)`
+    /// renders the response stored with it (replayed on retries).
+    pub async fn commit_batch(
         &self,
         map_id: i64,
         expected_version: i64,
-        c: &NewContribution,
-        version: Option<&NewVersion>,
-        respond: impl FnOnce(i64, Option<i64>) -> (u16, Vec<u8>),
-    ) -> Result<(u16, Vec<u8>), CommitError> {
+        entries: Vec<PendingCommit>,
+    ) -> Result<Vec<(u16, Vec<u8>)>, CommitError> {
         let mut tx = self.writer.begin_with("BEGIN IMMEDIATE").await?;
         let actual: i64 = sqlx::query_scalar("SELECT current_version FROM maps WHERE id = $1")
             .bind(map_id)
@@ -314,73 +335,82 @@ impl Storage {
             });
         }
         let now = now_ms();
-        let inserted = sqlx::query(
-            "INSERT INTO contributions (map_id, contributor, agent, run, traveled_m, idempotency_key,
-                request_sha256, body, received_ms, status, reason, transmitters, matched_version,
-                transform, inliers, score, merged, added, response_status, response_body)
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15, $16, $17, $18, 0, x'')
-             ON CONFLICT (map_id, contributor, idempotency_key) DO NOTHING",
-        )
-        .bind(map_id)
-        .bind(&c.contributor)
-        .bind(&c.agent)
-        .bind(&c.run)
-        .bind(c.traveled_m)
-        .bind(&c.idempotency_key)
-        .bind(&c.request_sha256)
-        .bind(&c.body)
-        .bind(now)
-        .bind(if c.accepted { "accepted" } else { "rejected" })
-        .bind(&c.reason)
-        .bind(c.transmitters)
-        .bind(c.matched_version)
-        .bind(&c.transform)
-        .bind(c.inliers)
-        .bind(c.score)
-        .bind(c.merged)
-        .bind(c.added)
-        .execute(&mut *tx)
-        .await?;
-        if inserted.rows_affected() == 0 {
-            return Err(CommitError::DuplicateKey);
-        }
-        let id = inserted.last_insert_rowid();
-        let new_version = match version {
-            Some(v) => {
-                let number = expected_version + 1;
-                sqlx::query(
-                    "INSERT INTO versions (map_id, number, parent, kind, contribution_id, body, transmitters, created_ms)
-                     VALUES ($1, $2, $3, 'merge', $4, $5, $6, $7)",
-                )
-                .bind(map_id)
-                .bind(number)
-                .bind((expected_version > 0).then_some(expected_version))
-                .bind(id)
-                .bind(&v.body)
-                .bind(v.transmitters)
-                .bind(now)
-                .execute(&mut *tx)
-                .await?;
-                sqlx::query("UPDATE maps SET current_version = $1 WHERE id = $2")
-                    .bind(number)
+        let mut current = expected_version;
+        let mut responses = Vec::with_capacity(entries.len());
+        for (index, e) in entries.into_iter().enumerate() {
+            let c = &e.contribution;
+            let inserted = sqlx::query(
+                "INSERT INTO contributions (map_id, contributor, agent, run, traveled_m, idempotency_key,
+                    request_sha256, body, received_ms, status, reason, transmitters, matched_version,
+                    transform, inliers, score, merged, added, response_status, response_body)
+                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15, $16, $17, $18, 0, x'')
+                 ON CONFLICT (map_id, contributor, idempotency_key) DO NOTHING",
+            )
+            .bind(map_id)
+            .bind(&c.contributor)
+            .bind(&c.agent)
+            .bind(&c.run)
+            .bind(c.traveled_m)
+            .bind(&c.idempotency_key)
+            .bind(&c.request_sha256)
+            .bind(&c.body)
+            .bind(now)
+            .bind(if c.accepted { "accepted" } else { "rejected" })
+            .bind(&c.reason)
+            .bind(c.transmitters)
+            .bind(current)
+            .bind(&c.transform)
+            .bind(c.inliers)
+            .bind(c.score)
+            .bind(c.merged)
+            .bind(c.added)
+            .execute(&mut *tx)
+            .await?;
+            if inserted.rows_affected() == 0 {
+                return Err(CommitError::DuplicateKey { index });
+            }
+            let id = inserted.last_insert_rowid();
+            let new_version = match &e.version {
+                Some(v) => {
+                    let number = current + 1;
+                    sqlx::query(
+                        "INSERT INTO versions (map_id, number, parent, kind, contribution_id, body, transmitters, created_ms)
+                         VALUES ($1, $2, $3, 'merge', $4, $5, $6, $7)",
+                    )
                     .bind(map_id)
+                    .bind(number)
+                    .bind((current > 0).then_some(current))
+                    .bind(id)
+                    .bind(&v.body)
+                    .bind(v.transmitters)
+                    .bind(now)
                     .execute(&mut *tx)
                     .await?;
-                Some(number)
-            }
-            None => None,
-        };
-        let (status, body) = respond(id, new_version);
-        sqlx::query(
-            "UPDATE contributions SET response_status = $1, response_body = $2 WHERE id = $3",
-        )
-        .bind(i64::from(status))
-        .bind(&body)
-        .bind(id)
-        .execute(&mut *tx)
-        .await?;
+                    current = number;
+                    Some(number)
+                }
+                None => None,
+            };
+            let (status, body) = (e.respond)(id, new_version);
+            sqlx::query(
+                "UPDATE contributions SET response_status = $1, response_body = $2 WHERE id = $3",
+            )
+            .bind(i64::from(status))
+            .bind(&body)
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+            responses.push((status, body));
+        }
+        if current != expected_version {
+            sqlx::query("UPDATE maps SET current_version = $1 WHERE id = $2")
+                .bind(current)
+                .bind(map_id)
+                .execute(&mut *tx)
+                .await?;
+        }
         tx.commit().await?;
-        Ok((status, body))
+        Ok(responses)
     }
 
     pub async fn contributions(
@@ -463,7 +493,7 @@ impl Storage {
         .await?
         .rows_affected();
         if changed != 1 {
-            return Err(CommitError::DuplicateKey);
+            return Err(CommitError::NotAccepted);
         }
         let number = expected_version + 1;
         sqlx::query(

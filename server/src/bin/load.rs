@@ -44,6 +44,10 @@ struct Cli {
     /// transmitters per uploaded user map
     #[arg(long, default_value_t = 30)]
     upload_transmitters: usize,
+    /// maps the uploaders are spread over (uploader i writes map i mod K); merges of one
+    /// map are serialized, different maps merge in parallel
+    #[arg(long, default_value_t = 1)]
+    maps: usize,
     /// seed of the synthetic maps
     #[arg(long, default_value_t = 1)]
     seed: u64,
@@ -214,24 +218,27 @@ async fn bench(cli: &Cli) -> Result<()> {
     .await?;
     let pid = server.id().context("server pid")?;
     let c = reqwest::Client::new();
-    c.put(format!("{base}/v1/maps/load"))
-        .bearer_auth("load-operator-0123456789")
-        .send()
-        .await?
-        .error_for_status()?;
     let world = synth::world(cli.seed, cli.transmitters);
-    let first = synth::contribution(synth::user_map(&world, cli.seed, 1.0, 0.05, 3), "seed");
-    let r = c
-        .post(format!("{base}/v1/maps/load/contributions"))
-        .bearer_auth("load-operator-0123456789")
-        .header("Idempotency-Key", "seed")
-        .json(&first)
-        .send()
-        .await?;
-    if r.status() != 201 {
-        bail!("seeding failed: {} {}", r.status(), r.text().await?);
+    let maps = cli.maps.max(1);
+    for m in 0..maps {
+        c.put(format!("{base}/v1/maps/load-{m}"))
+            .bearer_auth("load-operator-0123456789")
+            .send()
+            .await?
+            .error_for_status()?;
+        let first = synth::contribution(synth::user_map(&world, cli.seed, 1.0, 0.05, 3), "seed");
+        let r = c
+            .post(format!("{base}/v1/maps/load-{m}/contributions"))
+            .bearer_auth("load-operator-0123456789")
+            .header("Idempotency-Key", "seed")
+            .json(&first)
+            .send()
+            .await?;
+        if r.status() != 201 {
+            bail!("seeding failed: {} {}", r.status(), r.text().await?);
+        }
     }
-    let map_url = format!("{base}/v1/maps/load");
+    let map_url = format!("{base}/v1/maps/load-0");
     let body = c.get(&map_url).send().await?.bytes().await?;
     println!(
         "served map: {} transmitters × 3 components, {} bytes",
@@ -271,7 +278,7 @@ async fn bench(cli: &Cli) -> Result<()> {
     drop(statik);
 
     println!(
-        "upload phase: {} uploaders, {}-transmitter maps, {:.0} s",
+        "upload phase: {} uploaders over {maps} map(s), {}-transmitter maps, {:.0} s",
         cli.uploaders, cli.upload_transmitters, cli.duration_s
     );
     let keep = (cli.upload_transmitters as f64 / cli.transmitters as f64).min(1.0);
@@ -279,10 +286,10 @@ async fn bench(cli: &Cli) -> Result<()> {
     let stop = Instant::now() + duration;
     let accepted = Arc::new(AtomicU64::new(0));
     let mut tasks = Vec::new();
-    for token in tokens.clone() {
+    for (i, token) in tokens.iter().cloned().enumerate() {
         let (c, url, world, counter, accepted) = (
             reqwest::Client::new(),
-            format!("{base}/v1/maps/load/contributions"),
+            format!("{base}/v1/maps/load-{}/contributions", i % maps),
             world.clone(),
             counter.clone(),
             accepted.clone(),
@@ -349,6 +356,10 @@ async fn bench(cli: &Cli) -> Result<()> {
     println!(
         "match + merge per contribution (server side, serialized per map): mean {:.2} ms",
         1e3 * sum / count
+    );
+    println!(
+        "uploads per group commit: mean {:.1}",
+        value("echomap_commit_batch_size_sum") / value("echomap_commit_batch_size_count")
     );
     let rss_all = peak_rss_mib(pid);
     println!(

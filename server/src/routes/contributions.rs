@@ -1,27 +1,22 @@
 //! Contributions: upload (idempotent, matched and merged into a new version), list, roll back.
 
 use super::extract::{JsonBytes, parse_json};
-use super::maps::{authorize_read, json_response, rfc3339, transform_of};
+use super::maps::{authorize_read, json_response, rfc3339};
 use crate::api::{
     ContributionAccepted, ContributionInfo, ContributionPage, ContributionRequest, RolledBack,
 };
-use crate::error::{ApiError, ApiResult, PROBLEM_JSON, Problem, problem_body};
-use crate::merge::{Outcome, correspondences, integrate, replay, seed_of, sha256_hex};
+use crate::error::{ApiError, ApiResult, PROBLEM_JSON, Problem};
+use crate::merge::{replay, sha256_hex};
 use crate::model::{IdempotencyKey, MapName};
 use crate::state::{SharedState, render_json};
 use crate::storage::{CommitError, NewContribution, NewVersion, StoredResponse};
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use echomap_shared::geometry::Transform2;
 use echomap_shared::map::TransmitterMap;
 use echomap_shared::map::wire::MapDoc;
 use serde::Deserialize;
 use std::sync::Arc;
-use std::time::Instant;
-
-/// Renders the stored response once the contribution id and new version are known.
-type Respond = Box<dyn FnOnce(i64, Option<i64>) -> (u16, Vec<u8>) + Send>;
 
 /// Validates a wire map; errors name the field under `prefix`.
 pub fn validate_map(doc: MapDoc, prefix: &str) -> ApiResult<TransmitterMap> {
@@ -136,206 +131,47 @@ pub async fn post_contribution(
         detail: "body is not UTF-8".into(),
     })?;
 
-    let lock = app.map_lock(row.id);
-    let _merging = lock.lock().await;
-    loop {
-        let cur = app.current(&row).await?;
-        if let Some(prior) = &cur.map
-            && !prior.is_empty()
-            && prior.hex_size_m() != user.hex_size_m()
-        {
-            return Err(ApiError::Invalid {
-                field: "map.hex_size_m".into(),
-                detail: format!("must equal the map's {} m", prior.hex_size_m()),
-            });
-        }
-        let (prior, u, mcfg, gcfg) = (
-            cur.map.clone(),
-            user.clone(),
-            app.match_cfg.clone(),
-            app.merge_cfg.clone(),
-        );
-        let seed = seed_of(&sha);
-        let started = Instant::now();
-        let outcome = tokio::task::spawn_blocking(move || {
-            integrate(prior.as_deref(), &u, seed, &mcfg, &gcfg)
-        })
+    let contribution = NewContribution {
+        contributor: who.contributor.clone(),
+        agent,
+        run,
+        traveled_m,
+        idempotency_key: key.as_str().to_owned(),
+        request_sha256: sha.clone(),
+        body: body_text,
+        accepted: true,
+        reason: None,
+        transmitters: user.len() as i64,
+        transform: None,
+        inliers: None,
+        score: None,
+        merged: None,
+        added: None,
+    };
+    let (reply, answer) = tokio::sync::oneshot::channel();
+    crate::worker::submit(
+        &app,
+        &row,
+        crate::worker::Job {
+            user,
+            sha256: sha.clone(),
+            contribution,
+            reply,
+        },
+    )?;
+    let (status, bytes) = answer
         .await
-        .map_err(anyhow::Error::from)??;
-        metrics::histogram!("echomap_integrate_duration_seconds")
-            .record(started.elapsed().as_secs_f64());
-        let mut c = NewContribution {
-            contributor: who.contributor.clone(),
-            agent: agent.clone(),
-            run: run.clone(),
-            traveled_m,
-            idempotency_key: key.as_str().to_owned(),
-            request_sha256: sha.clone(),
-            body: body_text.clone(),
-            accepted: true,
-            reason: None,
-            transmitters: user.len() as i64,
-            matched_version: cur.version,
-            transform: None,
-            inliers: None,
-            score: None,
-            merged: None,
-            added: None,
-        };
-        let prior_map = cur.map.clone();
-        let (new_map, response): (Option<TransmitterMap>, Respond) = match outcome {
-            Outcome::Initialized { map } => {
-                c.transform = Some(
-                    serde_json::to_string(&Transform2::IDENTITY).map_err(anyhow::Error::from)?,
-                );
-                c.added = Some(map.len() as i64);
-                c.merged = Some(0);
-                let (n_tx, mapname) = (map.len(), name.to_string());
-                (
-                    Some(map),
-                    Box::new(move |id, version| {
-                        accepted_body(ContributionAccepted {
-                            contribution: id,
-                            map: mapname,
-                            status: "accepted".into(),
-                            version: version.unwrap_or(0),
-                            initialized: true,
-                            map_from_agent: Transform2::IDENTITY,
-                            correspondences: vec![],
-                            inliers: 0,
-                            score: 0.0,
-                            merged: 0,
-                            added: n_tx,
-                            transmitters: n_tx,
-                        })
-                    }),
-                )
-            }
-            Outcome::Merged {
-                map,
-                matched,
-                stats,
-            } => {
-                let t = transform_of(&matched.map_from_agent);
-                let corr = correspondences(
-                    &user,
-                    prior_map.as_deref().expect("merged into a prior"),
-                    &matched,
-                );
-                c.transform = Some(serde_json::to_string(&t).map_err(anyhow::Error::from)?);
-                c.inliers = Some(matched.inliers as i64);
-                c.score = Some(matched.score);
-                c.merged = Some(stats.merged as i64);
-                c.added = Some(stats.added as i64);
-                let (n_tx, mapname) = (map.len(), name.to_string());
-                (
-                    Some(map),
-                    Box::new(move |id, version| {
-                        accepted_body(ContributionAccepted {
-                            contribution: id,
-                            map: mapname,
-                            status: "accepted".into(),
-                            version: version.unwrap_or(0),
-                            initialized: false,
-                            map_from_agent: t,
-                            correspondences: corr,
-                            inliers: matched.inliers,
-                            score: matched.score,
-                            merged: stats.merged,
-                            added: stats.added,
-                            transmitters: n_tx,
-                        })
-                    }),
-                )
-            }
-            Outcome::Rejected { reason, matched } => {
-                c.accepted = false;
-                c.reason = Some(reason.clone());
-                c.inliers = Some(matched.inliers as i64);
-                c.score = matched.score.is_finite().then_some(matched.score);
-                (
-                    None,
-                    Box::new(move |id, _| {
-                        let p = ApiError::Unmatched {
-                            reason,
-                            contribution: id,
-                        }
-                        .problem();
-                        (p.status, problem_body(&p))
-                    }),
-                )
-            }
-        };
-        let version = match &new_map {
-            Some(m) => Some(NewVersion {
-                body: serde_json::to_string(m).map_err(anyhow::Error::from)?,
-                transmitters: m.len() as i64,
-            }),
-            None => None,
-        };
-        match app
-            .storage
-            .commit_contribution(row.id, cur.version, &c, version.as_ref(), response)
-            .await
-        {
-            Ok((status, bytes)) => {
-                if let Some(m) = new_map {
-                    let n = cur.version + 1;
-                    let contributions = cur.contributions + 1;
-                    let doc = version.as_ref().map_or("{}", |v| v.body.as_str());
-                    app.install(
-                        row.id,
-                        Arc::new(render_json(
-                            name.as_str(),
-                            n,
-                            contributions,
-                            Some(Arc::new(m)),
-                            doc,
-                        )?),
-                    );
-                    metrics::counter!("echomap_merges_total").increment(1);
-                    metrics::gauge!("echomap_map_transmitters", "map" => name.to_string())
-                        .set(version.as_ref().map_or(0.0, |v| v.transmitters as f64));
-                    tracing::info!(map = %name, version = n, contributor = %who.contributor, "contribution accepted");
-                } else {
-                    metrics::counter!("echomap_rejections_total").increment(1);
-                    tracing::info!(map = %name, contributor = %who.contributor, reason = ?c.reason, "contribution rejected");
-                }
-                let status = StatusCode::from_u16(status).unwrap_or(StatusCode::OK);
-                let ct = if status.is_success() {
-                    "application/json"
-                } else {
-                    PROBLEM_JSON
-                };
-                let mut resp = (status, bytes).into_response();
-                resp.headers_mut()
-                    .insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
-                return Ok(resp);
-            }
-            Err(CommitError::VersionMoved { expected, actual }) => {
-                // another replica committed meanwhile: forget the cached version and re-match
-                tracing::debug!(map = %name, expected, actual, "version moved; re-matching");
-                app.forget(row.id);
-                continue;
-            }
-            Err(CommitError::DuplicateKey) => {
-                let s = app
-                    .storage
-                    .stored_response(row.id, &who.contributor, key.as_str())
-                    .await?
-                    .ok_or_else(|| anyhow::anyhow!("duplicate key without a stored response"))?;
-                return lookup(s);
-            }
-            Err(CommitError::Db(e)) => return Err(e.into()),
-        }
-    }
-}
-
-fn accepted_body(a: ContributionAccepted) -> (u16, Vec<u8>) {
-    (
-        201,
-        serde_json::to_vec(&a).expect("a response always serializes"),
-    )
+        .map_err(|_| ApiError::Unavailable("the merge worker dropped the upload".into()))??;
+    let status = StatusCode::from_u16(status).unwrap_or(StatusCode::OK);
+    let ct = if status.is_success() {
+        "application/json"
+    } else {
+        PROBLEM_JSON
+    };
+    let mut resp = (status, bytes).into_response();
+    resp.headers_mut()
+        .insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
+    Ok(resp)
 }
 
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
@@ -507,12 +343,13 @@ pub async fn delete_contribution(
                 app.forget(row.id);
                 continue;
             }
-            Err(CommitError::DuplicateKey) => {
+            Err(CommitError::NotAccepted) => {
                 return Err(ApiError::Conflict(format!(
                     "contribution {id} is no longer accepted"
                 )));
             }
             Err(CommitError::Db(e)) => return Err(e.into()),
+            Err(e @ CommitError::DuplicateKey { .. }) => return Err(ApiError::Internal(e.into())),
         }
     }
 }

@@ -1,0 +1,350 @@
+//! The merge worker of a map: uploads to one map queue here and are integrated in arrival
+//! order. Whatever queued while the previous batch was committing forms the next batch: its
+//! uploads are matched and merged one after another (each against the map the previous one
+//! produced) on the blocking pool, then committed together in one transaction — one fsync per
+//! batch instead of one per upload (group commit). Different maps have different workers and
+//! merge in parallel.
+
+use crate::api::ContributionAccepted;
+use crate::error::{ApiError, ApiResult, problem_body};
+use crate::merge::{Outcome, correspondences, integrate, seed_of};
+use crate::routes::transform_of;
+use crate::state::{AppState, SharedState, render_json};
+use crate::storage::{CommitError, MapRow, NewContribution, NewVersion, PendingCommit, Respond};
+use echomap_shared::geometry::Transform2;
+use echomap_shared::map::TransmitterMap;
+use std::sync::Arc;
+use std::time::Instant;
+use tokio::sync::{mpsc, oneshot};
+
+/// Most uploads committed in one transaction.
+pub const MAX_BATCH: usize = 64;
+
+/// One validated upload waiting for its merge.
+#[derive(Debug)]
+pub struct Job {
+    pub user: Arc<TransmitterMap>,
+    /// hex SHA-256 of the request body (RANSAC seed, idempotency check)
+    pub sha256: String,
+    /// the row to store; outcome fields are filled in by the worker
+    pub contribution: NewContribution,
+    pub reply: oneshot::Sender<ApiResult<(u16, Vec<u8>)>>,
+}
+
+/// Queues `job` on the worker of `row`'s map (starting it if needed).
+pub fn submit(app: &SharedState, row: &MapRow, job: Job) -> Result<(), ApiError> {
+    let tx = app.merge_queue(row.id, || {
+        let (tx, rx) = mpsc::unbounded_channel();
+        tokio::spawn(run(app.clone(), row.clone(), rx));
+        tx
+    });
+    tx.send(job)
+        .map_err(|_| ApiError::Unavailable("the merge worker of this map stopped".into()))
+}
+
+async fn run(app: SharedState, row: MapRow, mut rx: mpsc::UnboundedReceiver<Job>) {
+    while let Some(first) = rx.recv().await {
+        let mut batch = vec![first];
+        while batch.len() < MAX_BATCH {
+            match rx.try_recv() {
+                Ok(j) => batch.push(j),
+                Err(_) => break,
+            }
+        }
+        // rollbacks of this map take the same lock
+        let lock = app.map_lock(row.id);
+        let _merging = lock.lock().await;
+        process(&app, &row, batch).await;
+    }
+}
+
+fn reply(job: Job, r: ApiResult<(u16, Vec<u8>)>) {
+    // the client may have gone away; its retry will find the stored response
+    let _ = job.reply.send(r);
+}
+
+async fn process(app: &AppState, row: &MapRow, mut batch: Vec<Job>) {
+    loop {
+        if batch.is_empty() {
+            return;
+        }
+        let cur = match app.current(row).await {
+            Ok(c) => c,
+            Err(e) => {
+                let msg = e.to_string();
+                for j in batch {
+                    reply(j, Err(ApiError::Internal(anyhow::anyhow!("{msg}"))));
+                }
+                return;
+            }
+        };
+        // integrate in order, each against the map the previous one produced
+        let inputs: Vec<(Arc<TransmitterMap>, u64)> = batch
+            .iter()
+            .map(|j| (j.user.clone(), seed_of(&j.sha256)))
+            .collect();
+        let (prior0, mcfg, gcfg) = (
+            cur.map.clone(),
+            app.match_cfg.clone(),
+            app.merge_cfg.clone(),
+        );
+        let started = Instant::now();
+        let integrated = tokio::task::spawn_blocking(move || {
+            let mut prior = prior0;
+            let mut out = Vec::with_capacity(inputs.len());
+            for (user, seed) in inputs {
+                let before = prior.clone();
+                if let Some(p) = prior.as_ref().filter(|p| !p.is_empty())
+                    && p.hex_size_m() != user.hex_size_m()
+                {
+                    out.push((
+                        Err(ApiError::Invalid {
+                            field: "map.hex_size_m".into(),
+                            detail: format!("must equal the map's {} m", p.hex_size_m()),
+                        }),
+                        before,
+                    ));
+                    continue;
+                }
+                let o = integrate(prior.as_deref(), &user, seed, &mcfg, &gcfg)
+                    .map_err(ApiError::Internal);
+                if let Ok(Outcome::Initialized { map } | Outcome::Merged { map, .. }) = &o {
+                    prior = Some(Arc::new(map.clone()));
+                }
+                out.push((o, before));
+            }
+            out
+        })
+        .await;
+        let integrated = match integrated {
+            Ok(v) => v,
+            Err(e) => {
+                let msg = e.to_string();
+                for j in batch {
+                    reply(
+                        j,
+                        Err(ApiError::Internal(anyhow::anyhow!(
+                            "merge task failed: {msg}"
+                        ))),
+                    );
+                }
+                return;
+            }
+        };
+        let per_job = started.elapsed().as_secs_f64() / batch.len() as f64;
+        for _ in 0..batch.len() {
+            metrics::histogram!("echomap_integrate_duration_seconds").record(per_job);
+        }
+
+        // jobs that failed before the commit are answered now; the rest are committed
+        let mut entries = Vec::new();
+        let mut committed: Vec<Job> = Vec::new();
+        let mut last_map: Option<(Arc<TransmitterMap>, String)> = None;
+        let mut accepted = 0i64;
+        let mut failed_before_commit = Vec::new();
+        for (job, (outcome, prior)) in batch.drain(..).zip(integrated) {
+            match outcome.and_then(|o| entry(&job, o, prior.as_deref(), &row.name)) {
+                Ok((e, map)) => {
+                    if let Some(m) = map {
+                        accepted += 1;
+                        let body = e
+                            .version
+                            .as_ref()
+                            .map_or_else(String::new, |v| v.body.clone());
+                        last_map = Some((m, body));
+                    }
+                    entries.push(e);
+                    committed.push(job);
+                }
+                Err(err) => failed_before_commit.push((job, err)),
+            }
+        }
+        for (job, err) in failed_before_commit {
+            reply(job, Err(err));
+        }
+        let n_entries = entries.len();
+        metrics::histogram!("echomap_commit_batch_size").record(n_entries as f64);
+        match app.storage.commit_batch(row.id, cur.version, entries).await {
+            Ok(responses) => {
+                let rejected = n_entries as i64 - accepted;
+                metrics::counter!("echomap_merges_total").increment(accepted as u64);
+                metrics::counter!("echomap_rejections_total").increment(rejected as u64);
+                if let Some((map, doc)) = last_map {
+                    let version = cur.version + accepted;
+                    metrics::gauge!("echomap_map_transmitters", "map" => row.name.clone())
+                        .set(map.len() as f64);
+                    match render_json(
+                        &row.name,
+                        version,
+                        cur.contributions + accepted,
+                        Some(map),
+                        &doc,
+                    ) {
+                        Ok(c) => {
+                            app.install(row.id, Arc::new(c));
+                        }
+                        Err(_) => app.forget(row.id),
+                    }
+                    tracing::info!(map = %row.name, version, accepted, rejected, "batch committed");
+                } else if rejected > 0 {
+                    tracing::info!(map = %row.name, rejected, "contributions rejected");
+                }
+                for (job, r) in committed.into_iter().zip(responses) {
+                    reply(job, Ok(r));
+                }
+                return;
+            }
+            Err(CommitError::VersionMoved { expected, actual }) => {
+                // another replica committed meanwhile: forget the cached version, re-match all
+                tracing::debug!(map = %row.name, expected, actual, "version moved; re-matching");
+                app.forget(row.id);
+                batch = committed;
+            }
+            Err(CommitError::DuplicateKey { index }) => {
+                // that upload was committed by another replica: answer it from the store
+                let job = committed.remove(index);
+                let stored = app
+                    .storage
+                    .stored_response(
+                        row.id,
+                        &job.contribution.contributor,
+                        &job.contribution.idempotency_key,
+                    )
+                    .await;
+                let r = match stored {
+                    Ok(Some(s)) if s.request_sha256 == job.sha256 => {
+                        Ok((s.response_status as u16, s.response_body))
+                    }
+                    Ok(Some(_)) => Err(ApiError::IdempotencyMismatch),
+                    Ok(None) => Err(ApiError::Internal(anyhow::anyhow!(
+                        "duplicate key without a stored response"
+                    ))),
+                    Err(e) => Err(e.into()),
+                };
+                reply(job, r);
+                batch = committed;
+            }
+            Err(e @ (CommitError::Db(_) | CommitError::NotAccepted)) => {
+                let msg = e.to_string();
+                for j in committed {
+                    reply(
+                        j,
+                        Err(ApiError::Internal(anyhow::anyhow!("commit failed: {msg}"))),
+                    );
+                }
+                return;
+            }
+        }
+    }
+}
+
+fn accepted_body(a: ContributionAccepted) -> (u16, Vec<u8>) {
+    (
+        201,
+        serde_json::to_vec(&a).expect("a response always serializes"),
+    )
+}
+
+/// The row, version and stored response of one integrated upload; the merged map when accepted.
+fn entry(
+    job: &Job,
+    outcome: Outcome,
+    prior: Option<&TransmitterMap>,
+    map_name: &str,
+) -> ApiResult<(PendingCommit, Option<Arc<TransmitterMap>>)> {
+    let mut c = job.contribution.clone();
+    let mapname = map_name.to_owned();
+    let json = |t: &Transform2| serde_json::to_string(t).map_err(|e| ApiError::Internal(e.into()));
+    let (map, respond): (Option<TransmitterMap>, Respond) = match outcome {
+        Outcome::Initialized { map } => {
+            c.transform = Some(json(&Transform2::IDENTITY)?);
+            c.added = Some(map.len() as i64);
+            c.merged = Some(0);
+            let n_tx = map.len();
+            (
+                Some(map),
+                Box::new(move |id, version| {
+                    accepted_body(ContributionAccepted {
+                        contribution: id,
+                        map: mapname,
+                        status: "accepted".into(),
+                        version: version.unwrap_or(0),
+                        initialized: true,
+                        map_from_agent: Transform2::IDENTITY,
+                        correspondences: vec![],
+                        inliers: 0,
+                        score: 0.0,
+                        merged: 0,
+                        added: n_tx,
+                        transmitters: n_tx,
+                    })
+                }),
+            )
+        }
+        Outcome::Merged {
+            map,
+            matched,
+            stats,
+        } => {
+            let t = transform_of(&matched.map_from_agent);
+            let corr = correspondences(&job.user, prior.expect("merged into a prior"), &matched);
+            c.transform = Some(json(&t)?);
+            c.inliers = Some(matched.inliers as i64);
+            c.score = Some(matched.score);
+            c.merged = Some(stats.merged as i64);
+            c.added = Some(stats.added as i64);
+            let n_tx = map.len();
+            (
+                Some(map),
+                Box::new(move |id, version| {
+                    accepted_body(ContributionAccepted {
+                        contribution: id,
+                        map: mapname,
+                        status: "accepted".into(),
+                        version: version.unwrap_or(0),
+                        initialized: false,
+                        map_from_agent: t,
+                        correspondences: corr,
+                        inliers: matched.inliers,
+                        score: matched.score,
+                        merged: stats.merged,
+                        added: stats.added,
+                        transmitters: n_tx,
+                    })
+                }),
+            )
+        }
+        Outcome::Rejected { reason, matched } => {
+            c.accepted = false;
+            c.reason = Some(reason.clone());
+            c.inliers = Some(matched.inliers as i64);
+            c.score = matched.score.is_finite().then_some(matched.score);
+            (
+                None,
+                Box::new(move |id, _| {
+                    let p = ApiError::Unmatched {
+                        reason,
+                        contribution: id,
+                    }
+                    .problem();
+                    (p.status, problem_body(&p))
+                }),
+            )
+        }
+    };
+    let version = match &map {
+        Some(m) => Some(NewVersion {
+            body: serde_json::to_string(m).map_err(|e| ApiError::Internal(e.into()))?,
+            transmitters: m.len() as i64,
+        }),
+        None => None,
+    };
+    Ok((
+        PendingCommit {
+            contribution: c,
+            version,
+            respond,
+        },
+        map.map(Arc::new),
+    ))
+}
