@@ -144,6 +144,23 @@ pub struct Pragmas {
     pub foreign_keys: i64,
 }
 
+/// Optimistic concurrency: the map must still be at the version the caller matched against.
+async fn expect_version(
+    tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
+    map_id: i64,
+    expected: i64,
+) -> Result<(), CommitError> {
+    let actual: i64 = sqlx::query_scalar("SELECT current_version FROM maps WHERE id = $1")
+        .bind(map_id)
+        .fetch_one(&mut **tx)
+        .await?;
+    if actual == expected {
+        Ok(())
+    } else {
+        Err(CommitError::VersionMoved { expected, actual })
+    }
+}
+
 pub fn now_ms() -> i64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -324,16 +341,7 @@ impl Storage {
         entries: Vec<PendingCommit>,
     ) -> Result<Vec<(u16, Vec<u8>)>, CommitError> {
         let mut tx = self.writer.begin_with("BEGIN IMMEDIATE").await?;
-        let actual: i64 = sqlx::query_scalar("SELECT current_version FROM maps WHERE id = $1")
-            .bind(map_id)
-            .fetch_one(&mut *tx)
-            .await?;
-        if actual != expected_version {
-            return Err(CommitError::VersionMoved {
-                expected: expected_version,
-                actual,
-            });
-        }
+        expect_version(&mut tx, map_id, expected_version).await?;
         let now = now_ms();
         let mut current = expected_version;
         let mut responses = Vec::with_capacity(entries.len());
@@ -474,16 +482,7 @@ impl Storage {
         rebuilt: &NewVersion,
     ) -> Result<i64, CommitError> {
         let mut tx = self.writer.begin_with("BEGIN IMMEDIATE").await?;
-        let actual: i64 = sqlx::query_scalar("SELECT current_version FROM maps WHERE id = $1")
-            .bind(map_id)
-            .fetch_one(&mut *tx)
-            .await?;
-        if actual != expected_version {
-            return Err(CommitError::VersionMoved {
-                expected: expected_version,
-                actual,
-            });
-        }
+        expect_version(&mut tx, map_id, expected_version).await?;
         let changed = sqlx::query(
             "UPDATE contributions SET status = 'rolled_back' WHERE id = $1 AND map_id = $2 AND status = 'accepted'",
         )

@@ -245,6 +245,18 @@ fn accepted_body(a: ContributionAccepted) -> (u16, Vec<u8>) {
     )
 }
 
+/// What an accepted upload reports.
+struct Accepted {
+    map: TransmitterMap,
+    initialized: bool,
+    map_from_agent: Transform2,
+    correspondences: Vec<crate::api::Correspondence>,
+    inliers: usize,
+    score: f64,
+    merged: usize,
+    added: usize,
+}
+
 /// The row, version and stored response of one integrated upload; the merged map when accepted.
 fn entry(
     job: &Job,
@@ -254,97 +266,95 @@ fn entry(
 ) -> ApiResult<(PendingCommit, Option<Arc<TransmitterMap>>)> {
     let mut c = job.contribution.clone();
     let mapname = map_name.to_owned();
-    let json = |t: &Transform2| serde_json::to_string(t).map_err(|e| ApiError::Internal(e.into()));
-    let (map, respond): (Option<TransmitterMap>, Respond) = match outcome {
-        Outcome::Initialized { map } => {
-            c.transform = Some(json(&Transform2::IDENTITY)?);
-            c.added = Some(map.len() as i64);
-            c.merged = Some(0);
-            let n_tx = map.len();
-            (
-                Some(map),
-                Box::new(move |id, version| {
-                    accepted_body(ContributionAccepted {
-                        contribution: id,
-                        map: mapname,
-                        status: "accepted".into(),
-                        version: version.unwrap_or(0),
-                        initialized: true,
-                        map_from_agent: Transform2::IDENTITY,
-                        correspondences: vec![],
-                        inliers: 0,
-                        score: 0.0,
-                        merged: 0,
-                        added: n_tx,
-                        transmitters: n_tx,
-                    })
-                }),
-            )
-        }
+    let accepted = match outcome {
+        Outcome::Initialized { map } => Accepted {
+            added: map.len(),
+            map,
+            initialized: true,
+            map_from_agent: Transform2::IDENTITY,
+            correspondences: Vec::new(),
+            inliers: 0,
+            score: 0.0,
+            merged: 0,
+        },
         Outcome::Merged {
             map,
             matched,
             stats,
         } => {
-            let t = transform_of(&matched.map_from_agent);
-            let corr = correspondences(&job.user, prior.expect("merged into a prior"), &matched);
-            c.transform = Some(json(&t)?);
             c.inliers = Some(matched.inliers as i64);
             c.score = Some(matched.score);
-            c.merged = Some(stats.merged as i64);
-            c.added = Some(stats.added as i64);
-            let n_tx = map.len();
-            (
-                Some(map),
-                Box::new(move |id, version| {
-                    accepted_body(ContributionAccepted {
-                        contribution: id,
-                        map: mapname,
-                        status: "accepted".into(),
-                        version: version.unwrap_or(0),
-                        initialized: false,
-                        map_from_agent: t,
-                        correspondences: corr,
-                        inliers: matched.inliers,
-                        score: matched.score,
-                        merged: stats.merged,
-                        added: stats.added,
-                        transmitters: n_tx,
-                    })
-                }),
-            )
+            Accepted {
+                correspondences: correspondences(
+                    &job.user,
+                    prior.expect("merged into a prior"),
+                    &matched,
+                ),
+                map,
+                initialized: false,
+                map_from_agent: transform_of(&matched.map_from_agent),
+                inliers: matched.inliers,
+                score: matched.score,
+                merged: stats.merged,
+                added: stats.added,
+            }
         }
         Outcome::Rejected { reason, matched } => {
             c.accepted = false;
             c.reason = Some(reason.clone());
             c.inliers = Some(matched.inliers as i64);
             c.score = matched.score.is_finite().then_some(matched.score);
-            (
+            let respond: Respond = Box::new(move |id, _| {
+                let p = ApiError::Unmatched {
+                    reason,
+                    contribution: id,
+                }
+                .problem();
+                (p.status, problem_body(&p))
+            });
+            return Ok((
+                PendingCommit {
+                    contribution: c,
+                    version: None,
+                    respond,
+                },
                 None,
-                Box::new(move |id, _| {
-                    let p = ApiError::Unmatched {
-                        reason,
-                        contribution: id,
-                    }
-                    .problem();
-                    (p.status, problem_body(&p))
-                }),
-            )
+            ));
         }
     };
-    let version = match &map {
-        Some(m) => Some(NewVersion {
-            body: serde_json::to_string(m).map_err(|e| ApiError::Internal(e.into()))?,
-            transmitters: m.len() as i64,
-        }),
-        None => None,
+    let a = accepted;
+    c.transform =
+        Some(serde_json::to_string(&a.map_from_agent).map_err(|e| ApiError::Internal(e.into()))?);
+    c.merged = Some(a.merged as i64);
+    c.added = Some(a.added as i64);
+    let version = NewVersion {
+        body: serde_json::to_string(&a.map).map_err(|e| ApiError::Internal(e.into()))?,
+        transmitters: a.map.len() as i64,
     };
+    let n_tx = a.map.len();
+    let map = Arc::new(a.map);
+    let respond: Respond = Box::new(move |id, version| {
+        accepted_body(ContributionAccepted {
+            contribution: id,
+            map: mapname,
+            status: "accepted".into(),
+            version: version.unwrap_or(0),
+            initialized: a.initialized,
+            map_from_agent: a.map_from_agent,
+            correspondences: a.correspondences,
+            inliers: a.inliers,
+            score: a.score,
+            merged: a.merged,
+            added: a.added,
+            transmitters: n_tx,
+        })
+    });
     Ok((
         PendingCommit {
             contribution: c,
-            version,
+            version: Some(version),
             respond,
         },
-        map.map(Arc::new),
+        Some(map),
     ))
 }

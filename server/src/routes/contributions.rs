@@ -1,7 +1,7 @@
 //! Contributions: upload (idempotent, matched and merged into a new version), list, roll back.
 
 use super::extract::{JsonBytes, parse_json};
-use super::maps::{authorize_read, json_response, rfc3339};
+use super::maps::{authorize_read, authorize_write, json_response, rfc3339};
 use crate::api::{
     ContributionAccepted, ContributionInfo, ContributionPage, ContributionRequest, RolledBack,
 };
@@ -75,13 +75,8 @@ pub async fn post_contribution(
     JsonBytes(body): JsonBytes,
 ) -> ApiResult<Response> {
     let name = MapName::parse(&name)?;
-    let who = app.tokens.require(&headers)?;
+    let who = authorize_write(&app, &name, &headers)?;
     let row = app.map_row(name.as_str()).await?;
-    if !who.may_write(name.as_str()) {
-        return Err(ApiError::Forbidden(format!(
-            "token may not write map {name:?}"
-        )));
-    }
     let key = IdempotencyKey::from_headers(&headers)?;
     let sha = sha256_hex(&body);
     let lookup = |s: StoredResponse| {
@@ -263,16 +258,11 @@ pub async fn delete_contribution(
     headers: HeaderMap,
 ) -> ApiResult<Response> {
     let name = MapName::parse(&name)?;
-    let who = app.tokens.require(&headers)?;
+    let who = authorize_write(&app, &name, &headers)?;
     let id: i64 = id.parse().map_err(|_| ApiError::BadRequest {
         detail: "contribution id must be an integer".into(),
     })?;
     let row = app.map_row(name.as_str()).await?;
-    if !who.may_write(name.as_str()) {
-        return Err(ApiError::Forbidden(format!(
-            "token may not write map {name:?}"
-        )));
-    }
     app.limiter.check(&who)?;
     let lock = app.map_lock(row.id);
     let _merging = lock.lock().await;

@@ -30,6 +30,22 @@ fn info(row: &MapRow) -> MapInfo {
     }
 }
 
+/// Writes need a token allowed for the map (401 without one, 403 for another map).
+pub fn authorize_write(
+    app: &AppState,
+    name: &MapName,
+    headers: &HeaderMap,
+) -> ApiResult<crate::auth::Principal> {
+    let who = app.tokens.require(headers)?;
+    if who.may_write(name.as_str()) {
+        Ok(who)
+    } else {
+        Err(ApiError::Forbidden(format!(
+            "token may not write map {name:?}"
+        )))
+    }
+}
+
 /// Reads of a private map need a token allowed for it.
 pub fn authorize_read(app: &AppState, row: &MapRow, headers: &HeaderMap) -> ApiResult<()> {
     if !row.private {
@@ -98,12 +114,7 @@ pub async fn put_map(
     JsonBytes(body): JsonBytes,
 ) -> ApiResult<Response> {
     let name = MapName::parse(&name)?;
-    let who = app.tokens.require(&headers)?;
-    if !who.may_write(name.as_str()) {
-        return Err(ApiError::Forbidden(format!(
-            "token may not write map {name:?}"
-        )));
-    }
+    let who = authorize_write(&app, &name, &headers)?;
     app.limiter.check(&who)?;
     let settings: CreateMap = if body.iter().all(u8::is_ascii_whitespace) {
         CreateMap::default()
