@@ -2,6 +2,7 @@
 //! Channel-SLAM filter, evaluation and the server client join here as they land.
 
 pub mod cli;
+pub mod client;
 pub mod eval;
 pub mod evaluate;
 pub mod filter;
