@@ -164,6 +164,25 @@ pub struct RunArgs {
     /// no progress bar
     #[arg(long)]
     pub quiet: bool,
+    #[command(flatten)]
+    pub server: ServerArgs,
+}
+
+/// Talking to a map server (`echomap-server`).
+#[derive(Debug, Args)]
+pub struct ServerArgs {
+    /// map server base URL; fetch the prior map at start, upload the user map at the end
+    #[arg(long, env = "ECHOMAP_SERVER", requires = "map")]
+    pub server: Option<String>,
+    /// map name on the server
+    #[arg(long, env = "ECHOMAP_MAP")]
+    pub map: Option<String>,
+    /// file holding the bearer token (first line that is not empty or a `#` comment)
+    #[arg(long, env = "ECHOMAP_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+    /// label of this agent/device sent with the upload
+    #[arg(long, default_value = "echomap-agent")]
+    pub contributor: String,
 }
 
 #[derive(Debug, Args)]
@@ -369,9 +388,17 @@ pub fn run(cli: Cli) -> Result<()> {
                 .map(|p| p.speed_mps)
                 .unwrap_or(0.0);
             let cfg = a.filter.config(a.seed, initial_speed)?;
+            let remote = crate::remote::Remote::from_args(&a.server)?;
+            if let Some(r) = &remote {
+                r.fetch_prior(&a.out)?;
+            }
             let out = crate::run::run_filter(&log, truth.as_ref(), cfg, !a.quiet)?;
             crate::output::write_run(&out, truth.as_ref(), &log, &a.out)?;
             crate::output::print_summary(&out, truth.as_ref(), &log);
+            if let Some(r) = &remote {
+                let run = format!("{}-seed{}", a.track, a.seed);
+                r.upload(&out, &run, &a.out)?;
+            }
             Ok(())
         }
         Command::Import(ImportCommand::Mrclam(a)) => {

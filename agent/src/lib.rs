@@ -9,5 +9,6 @@ pub mod filter;
 pub mod mrclam;
 pub mod output;
 pub mod plot;
+pub mod remote;
 pub mod run;
 pub mod sim;

@@ -100,6 +100,7 @@ pub async fn create_map(c: &reqwest::Client, s: &TestServer, name: &str) {
     assert!(r.status() == 201 || r.status() == 200, "{}", r.status());
 }
 
+#[allow(unused_imports)]
 pub use echomap_server::synth::{contribution, world};
 
 /// A user map of `world` (one component per transmitter); see [`echomap_server::synth`].

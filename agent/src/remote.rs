@@ -1,0 +1,126 @@
+//! `run --server URL --map NAME`: fetch the prior map before the run (conditional GET against
+//! the copy cached in the output directory) and upload the user map after it.
+//!
+//! The filter does not use the prior map yet (issue #6: association with prior-map
+//! transmitters); the fetched map is saved as `prior.json` beside the run's outputs.
+
+use crate::cli::ServerArgs;
+use crate::client::{ClientConfig, Contribution, Fetched, MapClient, UploadOutcome, parse_prior};
+use crate::run::RunOutput;
+use anyhow::{Context, Result};
+use std::path::Path;
+
+#[derive(Debug)]
+pub struct Remote {
+    client: MapClient,
+    map: String,
+    contributor: String,
+    rt: tokio::runtime::Runtime,
+}
+
+/// The token of a token file: its first line that is neither empty nor a `#` comment.
+pub fn read_token(path: &Path) -> Result<String> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("reading token file {}", path.display()))?;
+    text.lines()
+        .map(str::trim)
+        .find(|l| !l.is_empty() && !l.starts_with('#'))
+        .map(|l| l.split_whitespace().next().unwrap_or(l).to_owned())
+        .with_context(|| format!("no token in {}", path.display()))
+}
+
+impl Remote {
+    pub fn from_args(a: &ServerArgs) -> Result<Option<Self>> {
+        let Some(base) = &a.server else {
+            return Ok(None);
+        };
+        let map = a.map.clone().context("--server needs --map")?;
+        let mut cfg = ClientConfig::new(base);
+        cfg.token = a.token_file.as_deref().map(read_token).transpose()?;
+        let client = MapClient::new(cfg)?;
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()?;
+        Ok(Some(Remote {
+            client,
+            map,
+            contributor: a.contributor.clone(),
+            rt,
+        }))
+    }
+
+    /// Fetches the current prior map into `dir/prior.json` (304 keeps the cached copy).
+    pub fn fetch_prior(&self, dir: &Path) -> Result<()> {
+        std::fs::create_dir_all(dir)?;
+        let cache = dir.join("prior.json");
+        let cached = std::fs::read_to_string(&cache)
+            .ok()
+            .and_then(|b| parse_prior(&b).ok());
+        let fetched = self
+            .rt
+            .block_on(
+                self.client
+                    .fetch(&self.map, cached.as_ref().map(|c| c.version)),
+            )
+            .with_context(|| format!("fetching map {:?}", self.map))?;
+        let prior = match (fetched, cached) {
+            (Fetched::Fresh(p), _) => {
+                std::fs::write(&cache, &p.body)?;
+                p
+            }
+            (Fetched::NotModified, Some(c)) => c,
+            (Fetched::NotModified, None) => {
+                anyhow::bail!("server answered 304 to an unconditional GET")
+            }
+        };
+        println!(
+            "prior map {:?}: version {}, {} contributions, {} transmitters → {}",
+            prior.name,
+            prior.version,
+            prior.contributions,
+            prior.map.len(),
+            cache.display()
+        );
+        Ok(())
+    }
+
+    /// Uploads the user map; prints the server's answer and saves it as `dir/upload.json`.
+    pub fn upload(&self, out: &RunOutput, run: &str, dir: &Path) -> Result<()> {
+        let c = Contribution {
+            contributor: Some(self.contributor.clone()),
+            run: Some(run.to_owned()),
+            traveled_m: Some(out.rows.last().map(|r| r.traveled_m).unwrap_or(0.0)),
+            map: out.map.clone(),
+        };
+        let outcome = self
+            .rt
+            .block_on(self.client.upload(&self.map, &c))
+            .with_context(|| format!("uploading to map {:?}", self.map))?;
+        let saved = match &outcome {
+            UploadOutcome::Accepted(v) => {
+                println!(
+                    "uploaded: contribution {} → map {:?} version {} ({} merged, {} added, {} inliers)",
+                    v["contribution"],
+                    self.map,
+                    v["version"],
+                    v["merged"],
+                    v["added"],
+                    v["inliers"]
+                );
+                serde_json::json!({"status": "accepted", "response": v})
+            }
+            UploadOutcome::Rejected(p) => {
+                println!(
+                    "upload rejected (map unchanged): {}",
+                    p["detail"].as_str().unwrap_or("?")
+                );
+                serde_json::json!({"status": "rejected", "response": p})
+            }
+        };
+        std::fs::write(
+            dir.join("upload.json"),
+            serde_json::to_string_pretty(&saved)?,
+        )?;
+        Ok(())
+    }
+}
