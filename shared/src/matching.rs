@@ -61,6 +61,15 @@ pub struct MatchConfig {
     pub use_visibility: bool,
     /// weight of the visibility log-likelihood ratio in the score; default 1.0
     pub visibility_weight: f64,
+    /// the user's seen/unseen counts of a cell are scaled to at most this many observations
+    /// before they enter the visibility term: consecutive snapshots in one cell are not
+    /// independent, and raw counts (hundreds) let the visibility term outweigh every
+    /// location residual; default 1.0
+    pub visibility_max_count: f64,
+    /// standard deviation added isotropically (in quadrature) to every transmitter's position
+    /// covariance: a filter's map is distorted by its track error, which the per-transmitter
+    /// covariances (conditional on the particles' tracks) do not carry (m); default 0.5
+    pub position_floor_m: f64,
 }
 
 impl Default for MatchConfig {
@@ -81,6 +90,8 @@ impl Default for MatchConfig {
             min_inlier_spread_m: 1.0,
             use_visibility: true,
             visibility_weight: 1.0,
+            visibility_max_count: 1.0,
+            position_floor_m: 0.0,
         }
     }
 }
@@ -141,7 +152,8 @@ fn candidates(map: &TransmitterMap, cfg: &MatchConfig) -> Vec<Cand> {
             ((p[(0, 0)] + p[(1, 1)]).sqrt() <= cfg.max_position_std_m).then(|| Cand {
                 index,
                 p: Point2::new(m.x, m.y),
-                cov: p.fixed_view::<2, 2>(0, 0).into_owned(),
+                cov: p.fixed_view::<2, 2>(0, 0).into_owned()
+                    + nalgebra::Matrix2::identity() * cfg.position_floor_m.powi(2),
                 b: m.z,
                 b_std: p[(2, 2)].max(0.0).sqrt(),
             })
@@ -249,6 +261,7 @@ fn visibility_llr(
     prior: &Transmitter,
     map_from_agent: &Isometry2<f64>,
     grid: &HexGrid,
+    max_count: f64,
 ) -> f64 {
     if user.visibility.is_empty() || prior.visibility.is_empty() {
         return 0.0;
@@ -257,7 +270,10 @@ fn visibility_llr(
     let mut llr = 0.0;
     for (cell, u) in &moved {
         if let Some(p) = prior.visibility.get(cell) {
-            let (k, m) = (u.alpha, u.beta);
+            // at most `max_count` effective observations per cell (see MatchConfig)
+            let n = u.alpha + u.beta;
+            let scale = if n > max_count { max_count / n } else { 1.0 };
+            let (k, m) = (u.alpha * scale, u.beta * scale);
             let (a, b) = (p.alpha + 1.0, p.beta + 1.0);
             llr += ln_beta(k + a, m + b)
                 - ln_beta(a, b)
@@ -454,6 +470,7 @@ pub fn match_maps(
                                     &prior.transmitters()[p[j].index],
                                     &h.iso,
                                     &hex,
+                                    cfg.visibility_max_count,
                                 )
                             })
                             .sum::<f64>()
@@ -557,14 +574,22 @@ fn false_alarms(u: &[Cand], p: &[Cand], cfg: &MatchConfig, tests: usize, k: usiz
     let ellipse =
         (std::f64::consts::PI * cfg.inlier_gate_chi2 * mean_cov.determinant().max(0.0).sqrt())
             .min(std::f64::consts::PI * cfg.inlier_threshold_m.powi(2));
-    let lambda = (u.len() as f64 * p.len() as f64 * ellipse / area).max(1e-12);
-    // ln P(X ≥ k) = ln Σ_{i ≥ k} e^{−λ} λ^i / i!, summed in log space
-    let mut ln_terms = Vec::new();
-    let mut ln_term = -lambda + k as f64 * lambda.ln() - ln_gamma(k as f64 + 1.0);
-    for i in k..k + 200 {
-        ln_terms.push(ln_term);
-        ln_term += lambda.ln() - ((i + 1) as f64).ln();
+    // each user transmitter meets a chance prior transmitter inside its gate with probability
+    // q = 1 − exp(−n_p·ellipse/area) (Poisson points); inliers are one-to-one, so the number
+    // of chance inliers is Binomial(n_u, q) — a Poisson tail with λ = n_u·n_p·ellipse/area
+    // never saturates and over-states the chance of many inliers in dense maps
+    let n = u.len().min(p.len());
+    let q = (1.0 - (-(p.len() as f64) * ellipse / area).exp()).clamp(1e-300, 1.0 - 1e-16);
+    if k > n {
+        return 0.0;
     }
+    // ln P(X ≥ k) = ln Σ_{i=k}^{n} C(n, i) q^i (1−q)^(n−i), summed in log space
+    let ln_c = |i: usize| {
+        ln_gamma(n as f64 + 1.0) - ln_gamma(i as f64 + 1.0) - ln_gamma((n - i) as f64 + 1.0)
+    };
+    let ln_terms: Vec<f64> = (k..=n)
+        .map(|i| ln_c(i) + i as f64 * q.ln() + (n - i) as f64 * (1.0 - q).ln())
+        .collect();
     let max = ln_terms.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
     let ln_tail = max + ln_terms.iter().map(|t| (t - max).exp()).sum::<f64>().ln();
     (tests as f64).ln().exp() * ln_tail.exp()

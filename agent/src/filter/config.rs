@@ -101,6 +101,12 @@ pub struct FilterConfig {
     pub track_hold_s: f64,
     /// most components per transmitter in the exported map
     pub export_max_components: usize,
+    /// standard deviation (m) added in quadrature to the x/y covariance of every exported
+    /// component: the map is expressed relative to the estimated track, so it carries the
+    /// track's error, which the per-particle Kalman covariances (conditional on each
+    /// particle's track, and collapsed by resampling) do not; without it two users' maps of
+    /// the same place disagree by 10–20 of their own standard deviations and cannot be matched
+    pub export_position_floor_m: f64,
 }
 
 impl Default for FilterConfig {
@@ -128,6 +134,7 @@ impl Default for FilterConfig {
             visibility_prior: (1.0, 1.0),
             track_hold_s: 0.0,
             export_max_components: 4,
+            export_position_floor_m: 0.5,
         }
     }
 }

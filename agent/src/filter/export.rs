@@ -104,7 +104,10 @@ pub fn export_map(filter: &Filter) -> Result<TransmitterMap, MapError> {
             path: format!("transmitters[t{}]", filter.identities()[id].track),
             kind: echomap_shared::map::MapErrorKind::Empty,
         })?;
+        let floor = cfg.export_position_floor_m.powi(2);
         for c in &mut comps {
+            c.cov[(0, 0)] += floor;
+            c.cov[(1, 1)] += floor;
             c.cov = spd(&c.cov);
         }
         transmitters.push(Transmitter {
