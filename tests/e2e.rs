@@ -122,6 +122,15 @@ async fn three_agents_share_a_map_through_a_real_server() {
         .unwrap();
     let rows = page["contributions"].as_array().unwrap();
     assert_eq!(rows.len(), 3, "every agent's upload is recorded");
+    // the same track walked again: a later agent's map must match the first one's and merge
+    let merged = rows[1..]
+        .iter()
+        .filter(|r| r["status"] == "accepted" && r["merged"].as_i64().unwrap_or(0) >= 5)
+        .count();
+    assert!(
+        merged >= 1,
+        "no later upload matched the first map: {rows:?}"
+    );
     assert!(
         rows.iter()
             .all(|r| r["contributor"] == "alice" && r["agent"] == "echomap-agent")
