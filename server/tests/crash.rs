@@ -117,9 +117,13 @@ async fn acknowledged_contributions_survive_sigkill() {
         tokio::time::sleep(kill_after).await;
         child.start_kill().unwrap(); // SIGKILL
         child.wait().await.unwrap();
-        next = counter.load(Ordering::SeqCst);
+        let mut results = Vec::new();
         for s in streams {
-            let (sent, got) = s.await.unwrap();
+            results.push(s.await.unwrap());
+        }
+        // only now: a stream may draw a new key between the kill and its failing request
+        next = counter.load(Ordering::SeqCst);
+        for (sent, got) in results {
             pending.extend(sent);
             for (key, status, v) in got {
                 assert!(status == 201 || status == 422, "{status}: {v}");
