@@ -310,8 +310,9 @@ pub fn parse_prior(body: &str) -> Result<PriorMap, ClientError> {
             "map response lacks map/version/contributions".into(),
         ));
     };
-    let map = TransmitterMap::from_json(&v.to_string())
-        .map_err(|e| ClientError::Protocol(e.to_string()))?;
+    // what is left is the echomap.map.v1 document; deserializing validates it
+    let map: TransmitterMap = serde_json::from_value(v)
+        .map_err(|e| ClientError::Protocol(format!("invalid map: {e}")))?;
     Ok(PriorMap {
         name,
         version,

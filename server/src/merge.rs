@@ -13,6 +13,7 @@ use echomap_shared::merging::{MergeConfig, MergeStats, merge_maps};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sha2::{Digest, Sha256};
+use std::sync::Arc;
 
 /// Hex SHA-256 of a request body.
 pub fn sha256_hex(bytes: &[u8]) -> String {
@@ -28,9 +29,9 @@ pub fn seed_of(sha256_hex: &str) -> u64 {
 #[derive(Debug, Clone)]
 pub enum Outcome {
     /// first contribution: the map is the upload, in its own frame
-    Initialized { map: TransmitterMap },
+    Initialized { map: Arc<TransmitterMap> },
     Merged {
-        map: TransmitterMap,
+        map: Arc<TransmitterMap>,
         matched: MatchResult,
         stats: MergeStats,
     },
@@ -41,10 +42,10 @@ pub enum Outcome {
 }
 
 /// Matches `user` (agent frame) against `prior` (map frame, `None` before the first version)
-/// and merges it. The merged map is validated again before it may be stored.
+/// and merges it.
 pub fn integrate(
     prior: Option<&TransmitterMap>,
-    user: &TransmitterMap,
+    user: &Arc<TransmitterMap>,
     seed: u64,
     match_cfg: &MatchConfig,
     merge_cfg: &MergeConfig,
@@ -71,7 +72,7 @@ pub fn integrate(
     // merge_maps builds its result through TransmitterMap::new, which validates it (finite
     // numbers, SPD covariances, limits): nothing invalid can be stored or served.
     Ok(Outcome::Merged {
-        map,
+        map: Arc::new(map),
         matched,
         stats,
     })
@@ -100,14 +101,14 @@ pub fn replay(
     uploads: &[(i64, String)],
     match_cfg: &MatchConfig,
     merge_cfg: &MergeConfig,
-) -> anyhow::Result<(Option<TransmitterMap>, Vec<i64>)> {
-    let mut map: Option<TransmitterMap> = None;
+) -> anyhow::Result<(Option<Arc<TransmitterMap>>, Vec<i64>)> {
+    let mut map: Option<Arc<TransmitterMap>> = None;
     let mut dropped = Vec::new();
     for (id, body) in uploads {
         let req: ContributionRequest = serde_json::from_str(body)?;
-        let user = TransmitterMap::from_doc(req.map)?;
+        let user = Arc::new(TransmitterMap::from_doc(req.map)?);
         let seed = seed_of(&sha256_hex(body.as_bytes()));
-        match integrate(map.as_ref(), &user, seed, match_cfg, merge_cfg)? {
+        match integrate(map.as_deref(), &user, seed, match_cfg, merge_cfg)? {
             Outcome::Initialized { map: m } | Outcome::Merged { map: m, .. } => map = Some(m),
             Outcome::Rejected { .. } => dropped.push(*id),
         }

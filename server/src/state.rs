@@ -4,13 +4,22 @@
 use crate::auth::{TokenStore, WriteLimiter};
 use crate::config::Config;
 use crate::error::ApiError;
-use crate::storage::{MapRow, Storage};
+use crate::storage::Storage;
 use bytes::Bytes;
 use echomap_shared::map::TransmitterMap;
 use echomap_shared::matching::MatchConfig;
 use echomap_shared::merging::MergeConfig;
 use std::collections::{HashMap, HashSet};
 use std::sync::{Arc, Mutex, RwLock};
+
+/// What never changes about a map: its identity and read setting. (Version and counts do
+/// change; they come from [`CachedVersion`] or the database.)
+#[derive(Debug, Clone)]
+pub struct MapRef {
+    pub id: i64,
+    pub name: String,
+    pub private: bool,
+}
 
 /// A map version held in memory: parsed for matching, and the rendered `GET` body.
 #[derive(Debug)]
@@ -36,7 +45,7 @@ pub struct AppState {
     /// current version per map id; only ever replaced by a newer version
     current: RwLock<HashMap<i64, Arc<CachedVersion>>>,
     /// map name → row, for maps known to exist (names are never deleted or reused)
-    known: RwLock<HashMap<String, MapRow>>,
+    known: RwLock<HashMap<String, MapRef>>,
 }
 
 pub type SharedState = Arc<AppState>;
@@ -121,8 +130,8 @@ impl AppState {
         Ok(InFlight { state: self, key })
     }
 
-    /// The row of an existing map (cached: maps are never deleted).
-    pub async fn map_row(&self, name: &str) -> Result<MapRow, ApiError> {
+    /// The identity of an existing map (cached: maps are never deleted or changed).
+    pub async fn map_ref(&self, name: &str) -> Result<MapRef, ApiError> {
         if let Some(row) = self.known.read().expect("poisoned").get(name) {
             return Ok(row.clone());
         }
@@ -130,6 +139,11 @@ impl AppState {
             .storage
             .map(name)
             .await?
+            .map(|r| MapRef {
+                id: r.id,
+                name: r.name,
+                private: r.private,
+            })
             .ok_or_else(|| ApiError::NotFound(format!("no map named {name:?}")))?;
         self.known
             .write()
@@ -139,7 +153,7 @@ impl AppState {
     }
 
     /// The current version of a map, from the cache or the database.
-    pub async fn current(&self, row: &MapRow) -> Result<Arc<CachedVersion>, ApiError> {
+    pub async fn current(&self, row: &MapRef) -> Result<Arc<CachedVersion>, ApiError> {
         if let Some(c) = self.current.read().expect("poisoned").get(&row.id) {
             return Ok(c.clone());
         }

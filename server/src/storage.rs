@@ -161,6 +161,46 @@ async fn expect_version(
     }
 }
 
+/// Appends version `number` (its parent is `number − 1`, none for the first).
+async fn insert_version(
+    tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
+    map_id: i64,
+    number: i64,
+    kind: &str,
+    contribution_id: i64,
+    v: &NewVersion,
+    created_ms: i64,
+) -> Result<(), sqlx::Error> {
+    sqlx::query(
+        "INSERT INTO versions (map_id, number, parent, kind, contribution_id, body, transmitters, created_ms)
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
+    )
+    .bind(map_id)
+    .bind(number)
+    .bind((number > 1).then_some(number - 1))
+    .bind(kind)
+    .bind(contribution_id)
+    .bind(&v.body)
+    .bind(v.transmitters)
+    .bind(created_ms)
+    .execute(&mut **tx)
+    .await?;
+    Ok(())
+}
+
+async fn set_current_version(
+    tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
+    map_id: i64,
+    number: i64,
+) -> Result<(), sqlx::Error> {
+    sqlx::query("UPDATE maps SET current_version = $1 WHERE id = $2")
+        .bind(number)
+        .bind(map_id)
+        .execute(&mut **tx)
+        .await?;
+    Ok(())
+}
+
 pub fn now_ms() -> i64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -381,19 +421,7 @@ impl Storage {
             let new_version = match &e.version {
                 Some(v) => {
                     let number = current + 1;
-                    sqlx::query(
-                        "INSERT INTO versions (map_id, number, parent, kind, contribution_id, body, transmitters, created_ms)
-                         VALUES ($1, $2, $3, 'merge', $4, $5, $6, $7)",
-                    )
-                    .bind(map_id)
-                    .bind(number)
-                    .bind((current > 0).then_some(current))
-                    .bind(id)
-                    .bind(&v.body)
-                    .bind(v.transmitters)
-                    .bind(now)
-                    .execute(&mut *tx)
-                    .await?;
+                    insert_version(&mut tx, map_id, number, "merge", id, v, now).await?;
                     current = number;
                     Some(number)
                 }
@@ -411,11 +439,7 @@ impl Storage {
             responses.push((status, body));
         }
         if current != expected_version {
-            sqlx::query("UPDATE maps SET current_version = $1 WHERE id = $2")
-                .bind(current)
-                .bind(map_id)
-                .execute(&mut *tx)
-                .await?;
+            set_current_version(&mut tx, map_id, current).await?;
         }
         tx.commit().await?;
         Ok(responses)
@@ -495,24 +519,17 @@ impl Storage {
             return Err(CommitError::NotAccepted);
         }
         let number = expected_version + 1;
-        sqlx::query(
-            "INSERT INTO versions (map_id, number, parent, kind, contribution_id, body, transmitters, created_ms)
-             VALUES ($1, $2, $3, 'rollback', $4, $5, $6, $7)",
+        insert_version(
+            &mut tx,
+            map_id,
+            number,
+            "rollback",
+            contribution_id,
+            rebuilt,
+            now_ms(),
         )
-        .bind(map_id)
-        .bind(number)
-        .bind(expected_version)
-        .bind(contribution_id)
-        .bind(&rebuilt.body)
-        .bind(rebuilt.transmitters)
-        .bind(now_ms())
-        .execute(&mut *tx)
         .await?;
-        sqlx::query("UPDATE maps SET current_version = $1 WHERE id = $2")
-            .bind(number)
-            .bind(map_id)
-            .execute(&mut *tx)
-            .await?;
+        set_current_version(&mut tx, map_id, number).await?;
         tx.commit().await?;
         Ok(number)
     }

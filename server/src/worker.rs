@@ -8,9 +8,8 @@
 use crate::api::ContributionAccepted;
 use crate::error::{ApiError, ApiResult, problem_body};
 use crate::merge::{Outcome, correspondences, integrate, seed_of};
-use crate::routes::transform_of;
-use crate::state::{AppState, SharedState, render_json};
-use crate::storage::{CommitError, MapRow, NewContribution, NewVersion, PendingCommit, Respond};
+use crate::state::{AppState, MapRef, SharedState, render_json};
+use crate::storage::{CommitError, NewContribution, NewVersion, PendingCommit, Respond};
 use echomap_shared::geometry::Transform2;
 use echomap_shared::map::TransmitterMap;
 use std::sync::Arc;
@@ -32,7 +31,7 @@ pub struct Job {
 }
 
 /// Queues `job` on the worker of `row`'s map (starting it if needed).
-pub fn submit(app: &SharedState, row: &MapRow, job: Job) -> Result<(), ApiError> {
+pub fn submit(app: &SharedState, row: &MapRef, job: Job) -> Result<(), ApiError> {
     let tx = app.merge_queue(row.id, || {
         let (tx, rx) = mpsc::unbounded_channel();
         tokio::spawn(run(app.clone(), row.clone(), rx));
@@ -42,7 +41,7 @@ pub fn submit(app: &SharedState, row: &MapRow, job: Job) -> Result<(), ApiError>
         .map_err(|_| ApiError::Unavailable("the merge worker of this map stopped".into()))
 }
 
-async fn run(app: SharedState, row: MapRow, mut rx: mpsc::UnboundedReceiver<Job>) {
+async fn run(app: SharedState, row: MapRef, mut rx: mpsc::UnboundedReceiver<Job>) {
     while let Some(first) = rx.recv().await {
         let mut batch = vec![first];
         while batch.len() < MAX_BATCH {
@@ -63,20 +62,22 @@ fn reply(job: Job, r: ApiResult<(u16, Vec<u8>)>) {
     let _ = job.reply.send(r);
 }
 
-async fn process(app: &AppState, row: &MapRow, mut batch: Vec<Job>) {
+/// Answers every job with the same internal error.
+fn fail_all(jobs: Vec<Job>, what: &str, cause: impl std::fmt::Display) {
+    let msg = format!("{what}: {cause}");
+    for j in jobs {
+        reply(j, Err(ApiError::Internal(anyhow::anyhow!("{msg}"))));
+    }
+}
+
+async fn process(app: &AppState, row: &MapRef, mut batch: Vec<Job>) {
     loop {
         if batch.is_empty() {
             return;
         }
         let cur = match app.current(row).await {
             Ok(c) => c,
-            Err(e) => {
-                let msg = e.to_string();
-                for j in batch {
-                    reply(j, Err(ApiError::Internal(anyhow::anyhow!("{msg}"))));
-                }
-                return;
-            }
+            Err(e) => return fail_all(batch, "reading the current version", e),
         };
         // integrate in order, each against the map the previous one produced
         let inputs: Vec<(Arc<TransmitterMap>, u64)> = batch
@@ -109,7 +110,7 @@ async fn process(app: &AppState, row: &MapRow, mut batch: Vec<Job>) {
                 let o = integrate(prior.as_deref(), &user, seed, &mcfg, &gcfg)
                     .map_err(ApiError::Internal);
                 if let Ok(Outcome::Initialized { map } | Outcome::Merged { map, .. }) = &o {
-                    prior = Some(Arc::new(map.clone()));
+                    prior = Some(map.clone());
                 }
                 out.push((o, before));
             }
@@ -118,18 +119,7 @@ async fn process(app: &AppState, row: &MapRow, mut batch: Vec<Job>) {
         .await;
         let integrated = match integrated {
             Ok(v) => v,
-            Err(e) => {
-                let msg = e.to_string();
-                for j in batch {
-                    reply(
-                        j,
-                        Err(ApiError::Internal(anyhow::anyhow!(
-                            "merge task failed: {msg}"
-                        ))),
-                    );
-                }
-                return;
-            }
+            Err(e) => return fail_all(batch, "merge task failed", e),
         };
         let per_job = started.elapsed().as_secs_f64() / batch.len() as f64;
         for _ in 0..batch.len() {
@@ -139,7 +129,7 @@ async fn process(app: &AppState, row: &MapRow, mut batch: Vec<Job>) {
         // jobs that failed before the commit are answered now; the rest are committed
         let mut entries = Vec::new();
         let mut committed: Vec<Job> = Vec::new();
-        let mut last_map: Option<(Arc<TransmitterMap>, String)> = None;
+        let mut last_map: Option<Arc<TransmitterMap>> = None;
         let mut accepted = 0i64;
         let mut failed_before_commit = Vec::new();
         for (job, (outcome, prior)) in batch.drain(..).zip(integrated) {
@@ -147,11 +137,7 @@ async fn process(app: &AppState, row: &MapRow, mut batch: Vec<Job>) {
                 Ok((e, map)) => {
                     if let Some(m) = map {
                         accepted += 1;
-                        let body = e
-                            .version
-                            .as_ref()
-                            .map_or_else(String::new, |v| v.body.clone());
-                        last_map = Some((m, body));
+                        last_map = Some(m);
                     }
                     entries.push(e);
                     committed.push(job);
@@ -163,13 +149,19 @@ async fn process(app: &AppState, row: &MapRow, mut batch: Vec<Job>) {
             reply(job, Err(err));
         }
         let n_entries = entries.len();
+        // the newest version's stored document, spliced into the cached GET body
+        let last_doc = entries
+            .iter()
+            .rev()
+            .find_map(|e| e.version.as_ref())
+            .map(|v| v.body.clone());
         metrics::histogram!("echomap_commit_batch_size").record(n_entries as f64);
         match app.storage.commit_batch(row.id, cur.version, entries).await {
             Ok(responses) => {
                 let rejected = n_entries as i64 - accepted;
                 metrics::counter!("echomap_merges_total").increment(accepted as u64);
                 metrics::counter!("echomap_rejections_total").increment(rejected as u64);
-                if let Some((map, doc)) = last_map {
+                if let (Some(map), Some(doc)) = (last_map, last_doc) {
                     let version = cur.version + accepted;
                     metrics::gauge!("echomap_map_transmitters", "map" => row.name.clone())
                         .set(map.len() as f64);
@@ -225,14 +217,7 @@ async fn process(app: &AppState, row: &MapRow, mut batch: Vec<Job>) {
                 batch = committed;
             }
             Err(e @ (CommitError::Db(_) | CommitError::NotAccepted)) => {
-                let msg = e.to_string();
-                for j in committed {
-                    reply(
-                        j,
-                        Err(ApiError::Internal(anyhow::anyhow!("commit failed: {msg}"))),
-                    );
-                }
-                return;
+                return fail_all(committed, "commit failed", e);
             }
         }
     }
@@ -247,7 +232,7 @@ fn accepted_body(a: ContributionAccepted) -> (u16, Vec<u8>) {
 
 /// What an accepted upload reports.
 struct Accepted {
-    map: TransmitterMap,
+    map: Arc<TransmitterMap>,
     initialized: bool,
     map_from_agent: Transform2,
     correspondences: Vec<crate::api::Correspondence>,
@@ -292,7 +277,7 @@ fn entry(
                 ),
                 map,
                 initialized: false,
-                map_from_agent: transform_of(&matched.map_from_agent),
+                map_from_agent: Transform2::from_isometry(&matched.map_from_agent),
                 inliers: matched.inliers,
                 score: matched.score,
                 merged: stats.merged,
@@ -332,7 +317,7 @@ fn entry(
         transmitters: a.map.len() as i64,
     };
     let n_tx = a.map.len();
-    let map = Arc::new(a.map);
+    let map = a.map.clone();
     let respond: Respond = Box::new(move |id, version| {
         accepted_body(ContributionAccepted {
             contribution: id,

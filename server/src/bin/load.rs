@@ -12,7 +12,7 @@
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
 use echomap_server::synth;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::Stdio;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -368,6 +368,5 @@ async fn bench(cli: &Cli) -> Result<()> {
         rss_all.unwrap_or(f64::NAN)
     );
     drop(server);
-    let _ = Path::new(&db);
     Ok(())
 }

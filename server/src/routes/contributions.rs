@@ -38,16 +38,22 @@ fn check_text(field: &str, v: &Option<String>) -> ApiResult<()> {
     }
 }
 
-fn replay_stored(s: StoredResponse) -> Response {
-    let status = StatusCode::from_u16(s.response_status as u16).unwrap_or(StatusCode::OK);
+/// The response stored with a contribution (201 JSON or a problem document).
+fn stored_reply(status: u16, body: Vec<u8>) -> Response {
+    let status = StatusCode::from_u16(status).unwrap_or(StatusCode::OK);
     let ct = if status.is_success() {
         "application/json"
     } else {
         PROBLEM_JSON
     };
-    let mut resp = (status, s.response_body).into_response();
+    let mut resp = (status, body).into_response();
     resp.headers_mut()
         .insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
+    resp
+}
+
+fn replay_stored(s: StoredResponse) -> Response {
+    let mut resp = stored_reply(s.response_status as u16, s.response_body);
     resp.headers_mut()
         .insert("idempotent-replayed", HeaderValue::from_static("true"));
     resp
@@ -76,7 +82,7 @@ pub async fn post_contribution(
 ) -> ApiResult<Response> {
     let name = MapName::parse(&name)?;
     let who = authorize_write(&app, &name, &headers)?;
-    let row = app.map_row(name.as_str()).await?;
+    let row = app.map_ref(name.as_str()).await?;
     let key = IdempotencyKey::from_headers(&headers)?;
     let sha = sha256_hex(&body);
     let lookup = |s: StoredResponse| {
@@ -103,10 +109,15 @@ pub async fn post_contribution(
     {
         return lookup(s);
     }
-    let req: ContributionRequest = parse_json(&body)?;
-    check_text("contributor", &req.contributor)?;
-    check_text("run", &req.run)?;
-    if let Some(d) = req.traveled_m
+    let ContributionRequest {
+        contributor: agent,
+        run,
+        traveled_m,
+        map,
+    } = parse_json(&body)?;
+    check_text("contributor", &agent)?;
+    check_text("run", &run)?;
+    if let Some(d) = traveled_m
         && !(d.is_finite() && d >= 0.0)
     {
         return Err(ApiError::Invalid {
@@ -114,8 +125,7 @@ pub async fn post_contribution(
             detail: format!("must be a finite distance ≥ 0, got {d}"),
         });
     }
-    let (agent, run, traveled_m) = (req.contributor.clone(), req.run.clone(), req.traveled_m);
-    let user = Arc::new(validate_map(req.map, "map")?);
+    let user = Arc::new(validate_map(map, "map")?);
     if user.is_empty() {
         return Err(ApiError::Invalid {
             field: "map.transmitters".into(),
@@ -157,16 +167,7 @@ pub async fn post_contribution(
     let (status, bytes) = answer
         .await
         .map_err(|_| ApiError::Unavailable("the merge worker dropped the upload".into()))??;
-    let status = StatusCode::from_u16(status).unwrap_or(StatusCode::OK);
-    let ct = if status.is_success() {
-        "application/json"
-    } else {
-        PROBLEM_JSON
-    };
-    let mut resp = (status, bytes).into_response();
-    resp.headers_mut()
-        .insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
-    Ok(resp)
+    Ok(stored_reply(status, bytes))
 }
 
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
@@ -202,7 +203,7 @@ pub async fn list_contributions(
             detail: format!("limit must lie in 1..=1000, got {}", q.limit),
         });
     }
-    let row = app.map_row(name.as_str()).await?;
+    let row = app.map_ref(name.as_str()).await?;
     authorize_read(&app, &row, &headers)?;
     let rows = app
         .storage
@@ -262,7 +263,7 @@ pub async fn delete_contribution(
     let id: i64 = id.parse().map_err(|_| ApiError::BadRequest {
         detail: "contribution id must be an integer".into(),
     })?;
-    let row = app.map_row(name.as_str()).await?;
+    let row = app.map_ref(name.as_str()).await?;
     app.limiter.check(&who)?;
     let lock = app.map_lock(row.id);
     let _merging = lock.lock().await;
@@ -295,7 +296,7 @@ pub async fn delete_contribution(
                 .map_err(anyhow::Error::from)??;
         let rebuilt = match rebuilt {
             Some(m) => m,
-            None => TransmitterMap::empty(hex).map_err(|e| anyhow::anyhow!("{e}"))?,
+            None => Arc::new(TransmitterMap::empty(hex).map_err(|e| anyhow::anyhow!("{e}"))?),
         };
         let v = NewVersion {
             body: serde_json::to_string(&rebuilt).map_err(anyhow::Error::from)?,
@@ -315,7 +316,7 @@ pub async fn delete_contribution(
                         name.as_str(),
                         n,
                         contributions,
-                        Some(Arc::new(rebuilt)),
+                        Some(rebuilt),
                         &v.body,
                     )?),
                 );

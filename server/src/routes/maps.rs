@@ -5,7 +5,7 @@ use crate::api::{CreateMap, MapInfo, MapList, MatchAnswer, MatchRequest};
 use crate::error::{ApiError, ApiResult, Problem};
 use crate::merge::{correspondences, seed_of, sha256_hex};
 use crate::model::MapName;
-use crate::state::{AppState, SharedState};
+use crate::state::{AppState, MapRef, SharedState};
 use crate::storage::MapRow;
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -47,7 +47,7 @@ pub fn authorize_write(
 }
 
 /// Reads of a private map need a token allowed for it.
-pub fn authorize_read(app: &AppState, row: &MapRow, headers: &HeaderMap) -> ApiResult<()> {
+pub fn authorize_read(app: &AppState, row: &MapRef, headers: &HeaderMap) -> ApiResult<()> {
     if !row.private {
         return Ok(());
     }
@@ -173,7 +173,7 @@ pub async fn get_map(
     headers: HeaderMap,
 ) -> ApiResult<Response> {
     let name = MapName::parse(&name)?;
-    let row = app.map_row(name.as_str()).await?;
+    let row = app.map_ref(name.as_str()).await?;
     authorize_read(&app, &row, &headers)?;
     let cur = app.current(&row).await?;
     let etag = format!("\"{}\"", cur.version);
@@ -208,7 +208,7 @@ pub async fn get_version(
             crate::model::truncate(&n, 40)
         ),
     })?;
-    let row = app.map_row(name.as_str()).await?;
+    let row = app.map_ref(name.as_str()).await?;
     authorize_read(&app, &row, &headers)?;
     let v = app
         .storage
@@ -235,10 +235,6 @@ pub async fn get_version(
     Ok(resp)
 }
 
-pub fn transform_of(iso: &nalgebra::Isometry2<f64>) -> Transform2 {
-    Transform2::from_isometry(iso)
-}
-
 /// Match a (partial) user map against the current map; nothing is written. Returns the
 /// transform taking map coordinates into the agent frame.
 #[utoipa::path(post, path = "/v1/maps/{map}/match", tag = "maps",
@@ -253,7 +249,7 @@ pub async fn match_map(
     JsonBytes(body): JsonBytes,
 ) -> ApiResult<Response> {
     let name = MapName::parse(&name)?;
-    let row = app.map_row(name.as_str()).await?;
+    let row = app.map_ref(name.as_str()).await?;
     authorize_read(&app, &row, &headers)?;
     if let Some(who) = app.tokens.from_headers(&headers)? {
         app.limiter.check(&who)?;
@@ -288,8 +284,10 @@ pub async fn match_map(
             version: cur.version,
             agent_from_map: m
                 .accepted
-                .then(|| transform_of(&m.map_from_agent.inverse())),
-            map_from_agent: m.accepted.then(|| transform_of(&m.map_from_agent)),
+                .then(|| Transform2::from_isometry(&m.map_from_agent.inverse())),
+            map_from_agent: m
+                .accepted
+                .then(|| Transform2::from_isometry(&m.map_from_agent)),
             correspondences: correspondences(&user, &prior, &m),
             inliers: m.inliers,
             score,

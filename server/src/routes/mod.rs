@@ -15,7 +15,6 @@ use utoipa_axum::routes;
 use utoipa_swagger_ui::SwaggerUi;
 
 pub use extract::parse_json;
-pub use maps::transform_of;
 
 #[derive(OpenApi)]
 #[openapi(
