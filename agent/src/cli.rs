@@ -38,9 +38,15 @@ pub enum Command {
     Match(MatchArgs),
     /// Match and merge a user map into a prior map; writes the merged map.
     Merge(MergeArgs),
-    /// The main job for now: simulate the indoor reference track and render the scenario and
-    /// the channel-estimator output into --out (default out/demo).
+    /// The main job: start a map server on loopback, let a crowd of agent processes build a
+    /// map of the indoor scenario, run the reference user alone and with the crowd's map,
+    /// print the results and write plots into --out (default out/demo).
     Demo(DemoArgs),
+    /// Launch users as separate `echomap-agent run` processes against a map server.
+    Crowd(CrowdArgs),
+    /// Experiments of the papers.
+    #[command(subcommand)]
+    Experiment(ExperimentCommand),
     /// Draw a scenario (walls, scatterers, transmitter, tracks, virtual transmitters) as PNG or SVG,
     /// or dump it as a JSON scenario file.
     Scenario(ScenarioArgs),
@@ -164,6 +170,19 @@ pub struct RunArgs {
     /// no progress bar
     #[arg(long)]
     pub quiet: bool,
+    /// a prior map (map frame) to match against and use: an `echomap.map.v1` file or a map
+    /// document as served by GET /v1/maps/{map}; with --server the fetched map is used instead
+    #[arg(long, conflicts_with = "server")]
+    pub prior: Option<PathBuf>,
+    /// seconds of log time between matching attempts against the prior map
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().match_every_s)]
+    pub match_every: f64,
+    /// std (m) added to every prior transmitter's position covariance
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().position_floor_m)]
+    pub prior_floor: f64,
+    /// with --server: fetch and upload, but do not use the prior map in the filter
+    #[arg(long)]
+    pub ignore_prior: bool,
     #[command(flatten)]
     pub server: ServerArgs,
 }
@@ -268,6 +287,23 @@ fn read_map(path: &Path) -> Result<echomap_shared::TransmitterMap> {
         .with_context(|| format!("in {}", path.display()))
 }
 
+/// A prior map file: a bare `echomap.map.v1` map or a served map document.
+pub fn read_prior(path: &Path) -> Result<echomap_shared::TransmitterMap> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    match echomap_shared::TransmitterMap::from_json(&text) {
+        Ok(m) => Ok(m),
+        Err(bare) => crate::client::parse_prior(&text)
+            .map(|p| p.map)
+            .map_err(|doc| {
+                anyhow::anyhow!(
+                    "{} is neither an echomap.map.v1 map ({bare}) nor a served map document ({doc})",
+                    path.display()
+                )
+            }),
+    }
+}
+
 /// JSON form of a match result (ids instead of indices).
 pub fn match_json(
     r: &echomap_shared::matching::MatchResult,
@@ -290,11 +326,91 @@ pub fn match_json(
 
 #[derive(Debug, Args)]
 pub struct DemoArgs {
-    /// seed of the simulation
+    /// seed of the simulations and filters
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// number of contributing users (indoor tracks user01, user02, …)
+    #[arg(long, default_value_t = 6)]
+    pub users: usize,
+    /// particles of every agent
+    #[arg(long, default_value_t = 500)]
+    pub particles: usize,
     /// output directory
     #[arg(long, default_value = "out/demo")]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct CrowdArgs {
+    /// map server base URL
+    #[arg(long, env = "ECHOMAP_SERVER")]
+    pub server: String,
+    /// map name (created if missing)
+    #[arg(long, env = "ECHOMAP_MAP")]
+    pub map: String,
+    /// file holding the bearer token
+    #[arg(long, env = "ECHOMAP_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+    /// built-in scenario or JSON file
+    #[arg(long, default_value = "indoor")]
+    pub scenario: String,
+    /// number of users: the scenario's tracks other than `reference`, in order
+    #[arg(long)]
+    pub users: usize,
+    /// run at most K agent processes at once (default 1: each user gets the map left by
+    /// the previous ones)
+    #[arg(long, default_value_t = 1)]
+    pub parallel: usize,
+    /// user k (1-based) runs with seed SEED·1000 + k
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// particles of every agent
+    #[arg(long, default_value_t = 500)]
+    pub particles: usize,
+    /// output directory: one sub-directory per user, crowd.md, crowd.json
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum ExperimentCommand {
+    /// Seed 001 Fig. 5: the reference user's MAE with prior maps built by c contributors.
+    Cooperative(CooperativeArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct CooperativeArgs {
+    /// built-in scenario or JSON file (simulated experiment)
+    #[arg(long, default_value = "indoor", conflicts_with = "dataset")]
+    pub scenario: String,
+    /// numbers of contributors to evaluate (0 = single user)
+    #[arg(long, value_delimiter = ',', default_value = "0,1,2,6,15,21")]
+    pub contributors: Vec<usize>,
+    /// runs (seeds) per configuration
+    #[arg(long, default_value_t = 10)]
+    pub runs: u64,
+    /// first seed; run r uses seed first-seed + r
+    #[arg(long, default_value_t = 1)]
+    pub first_seed: u64,
+    /// particles of the contributors
+    #[arg(long, default_value_t = 300)]
+    pub particles: usize,
+    /// particles of the reference user
+    #[arg(long, default_value_t = 1000)]
+    pub reference_particles: usize,
+    /// reference runs (one per c) at once
+    #[arg(long, default_value_t = 2)]
+    pub parallel: usize,
+    /// real data instead: `mrclam DIR` (UTIAS MRCLAM; every robot is the reference once)
+    #[arg(long, num_args = 2, value_names = ["KIND", "DIR"])]
+    pub dataset: Vec<String>,
+    /// use this server instead of starting one on loopback
+    #[arg(long, env = "ECHOMAP_SERVER")]
+    pub server: Option<String>,
+    /// token file for --server
+    #[arg(long, env = "ECHOMAP_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+    #[arg(long)]
     pub out: PathBuf,
 }
 
@@ -389,10 +505,29 @@ pub fn run(cli: Cli) -> Result<()> {
                 .unwrap_or(0.0);
             let cfg = a.filter.config(a.seed, initial_speed)?;
             let remote = crate::remote::Remote::from_args(&a.server)?;
-            if let Some(r) = &remote {
-                r.fetch_prior(&a.out)?;
-            }
-            let out = crate::run::run_filter(&log, truth.as_ref(), cfg, !a.quiet)?;
+            let prior = match (&remote, &a.prior) {
+                (Some(r), _) => Some(r.fetch_prior(&a.out)?),
+                (None, Some(path)) => Some(read_prior(path)?),
+                (None, None) => None,
+            };
+            anyhow::ensure!(
+                a.match_every > 0.0 && a.match_every.is_finite(),
+                "--match-every must be a positive number of seconds"
+            );
+            anyhow::ensure!(
+                a.prior_floor >= 0.0 && a.prior_floor.is_finite(),
+                "--prior-floor must be a non-negative number of metres"
+            );
+            let tracker = prior.filter(|p| !p.is_empty() && !a.ignore_prior).map(|p| {
+                let settings = crate::filter::PriorSettings {
+                    match_every_s: a.match_every,
+                    position_floor_m: a.prior_floor,
+                    ..Default::default()
+                };
+                crate::filter::PriorTracker::new(p, settings, a.seed)
+            });
+            let out =
+                crate::run::run_filter_with_prior(&log, truth.as_ref(), cfg, !a.quiet, tracker)?;
             crate::output::write_run(&out, truth.as_ref(), &log, &a.out)?;
             crate::output::print_summary(&out, truth.as_ref(), &log);
             if let Some(r) = &remote {
@@ -466,40 +601,9 @@ pub fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Evaluate(a) => crate::evaluate::evaluate(&a),
-        Command::Demo(a) => {
-            let scenario = builtin::indoor();
-            let out = simulate(
-                &scenario,
-                "reference",
-                SimOptions {
-                    seed: a.seed,
-                    toa_only: false,
-                },
-            )?;
-            write_sim_output(&out, &a.out)?;
-            let scenario_png = a.out.join("scenario.png");
-            crate::plot::draw_scenario(
-                &scenario,
-                &["reference".to_string()],
-                "reference",
-                &scenario_png,
-            )?;
-            let comps_png = a.out.join("components.png");
-            let title = format!("indoor / reference, seed {}: detected components", a.seed);
-            crate::plot::draw_components(&out.log, &out.truth, &title, &comps_png)?;
-            let comps: usize = out.log.snapshots.iter().map(|s| s.components.len()).sum();
-            println!(
-                "indoor / reference (seed {}): {} snapshots, {:.1} components per snapshot, {} track ids",
-                a.seed,
-                out.log.snapshots.len(),
-                comps as f64 / out.log.snapshots.len().max(1) as f64,
-                out.truth.transmitters.len()
-            );
-            for f in ["log.jsonl", "truth.json", "scenario.png", "components.png"] {
-                println!("  wrote {}", a.out.join(f).display());
-            }
-            Ok(())
-        }
+        Command::Demo(a) => crate::demo::demo(&a),
+        Command::Crowd(a) => crowd_command(&a),
+        Command::Experiment(ExperimentCommand::Cooperative(a)) => cooperative_command(&a),
         Command::Scenario(a) => {
             let scenario = load_scenario(&a.source)?;
             let ext = a
@@ -566,4 +670,152 @@ pub fn load_run_input(a: &RunArgs) -> Result<(MeasurementLog, Option<GroundTruth
         }
         _ => bail!("give either --log DIR or --scenario S"),
     }
+}
+
+/// The scenario's user tracks: every track but `reference`, in order.
+pub fn user_tracks(scenario: &str) -> Result<Vec<String>> {
+    let s = load_scenario(&ScenarioSource {
+        scenario: scenario.to_owned(),
+        toa_only: false,
+    })?;
+    Ok(s.tracks
+        .iter()
+        .map(|t| t.name.clone())
+        .filter(|n| n != "reference")
+        .collect())
+}
+
+fn crowd_command(a: &CrowdArgs) -> Result<()> {
+    use crate::crowd::{CrowdSpec, Source, User, run_crowd, table};
+    let tracks = user_tracks(&a.scenario)?;
+    anyhow::ensure!(
+        a.users >= 1 && a.users <= tracks.len(),
+        "--users must be 1..={} for scenario {:?}",
+        tracks.len(),
+        a.scenario
+    );
+    anyhow::ensure!(a.parallel >= 1, "--parallel must be at least 1");
+    let mut cfg = crate::client::ClientConfig::new(&a.server);
+    cfg.token = a
+        .token_file
+        .as_deref()
+        .map(crate::remote::read_token)
+        .transpose()?;
+    let client = crate::client::MapClient::new(cfg)?;
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?
+        .block_on(client.create_map(&a.map))
+        .with_context(|| format!("creating map {:?}", a.map))?;
+    let users: Vec<User> = tracks[..a.users]
+        .iter()
+        .enumerate()
+        .map(|(k, t)| User {
+            name: t.clone(),
+            source: Source::Scenario {
+                scenario: a.scenario.clone(),
+                track: t.clone(),
+            },
+            seed: a.seed * 1000 + k as u64 + 1,
+        })
+        .collect();
+    let spec = CrowdSpec {
+        exe: std::env::current_exe()?,
+        server: a.server.clone(),
+        map: a.map.clone(),
+        token_file: a.token_file.clone(),
+        parallel: a.parallel,
+        run_args: vec!["--particles".into(), a.particles.to_string()],
+        out: a.out.clone(),
+        progress: true,
+    };
+    std::fs::create_dir_all(&a.out)?;
+    let results = run_crowd(&spec, &users);
+    let t = table(&results);
+    std::fs::write(a.out.join("crowd.md"), &t)?;
+    std::fs::write(
+        a.out.join("crowd.json"),
+        serde_json::to_string_pretty(&results)?,
+    )?;
+    println!("{t}");
+    let failed = results.iter().filter(|r| !r.ok).count();
+    anyhow::ensure!(
+        failed == 0,
+        "{failed} of {} agent processes failed",
+        results.len()
+    );
+    Ok(())
+}
+
+/// Filter flags for MRCLAM (README: noise floors measured from the data, line of sight only).
+pub const MRCLAM_RUN_ARGS: [&str; 10] = [
+    "--b-prior",
+    "zero",
+    "--distance-std",
+    "0.15",
+    "--aoa-std",
+    "0.05",
+    "--association-p0",
+    "1e-4",
+    "--association-gate",
+    "30",
+];
+
+fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
+    use crate::experiment::{ExperimentSpec, cooperative_mrclam, cooperative_scenario};
+    anyhow::ensure!(a.runs >= 1, "--runs must be at least 1");
+    let mut contributors = a.contributors.clone();
+    contributors.sort_unstable();
+    contributors.dedup();
+    let spec = |crowd: Vec<String>, reference: Vec<String>| ExperimentSpec {
+        exe: std::env::current_exe().expect("the running executable"),
+        server: a.server.clone(),
+        token_file: a.token_file.clone(),
+        runs: a.runs,
+        first_seed: a.first_seed,
+        parallel: a.parallel.max(1),
+        crowd_args: crowd,
+        reference_args: reference,
+        out: a.out.clone(),
+        progress: true,
+    };
+    let particles = |n: usize| vec!["--particles".to_string(), n.to_string()];
+    match a.dataset.as_slice() {
+        [] => {
+            let tracks = user_tracks(&a.scenario)?;
+            cooperative_scenario(
+                &spec(particles(a.particles), particles(a.reference_particles)),
+                &a.scenario,
+                &tracks,
+                "reference",
+                &contributors,
+            )?;
+        }
+        [kind, dir] if kind == "mrclam" => {
+            let mut logs = Vec::new();
+            for robot in 1..=5u32 {
+                let d = a.out.join(format!("logs/robot{robot}"));
+                let (log, truth) = crate::mrclam::import(
+                    Path::new(dir),
+                    crate::mrclam::ImportOptions {
+                        robot,
+                        track_gap_s: 5.0,
+                        rate_hz: 10.0,
+                        snr_db: 20.0,
+                    },
+                )?;
+                write_sim_output(&crate::sim::SimOutput { log, truth }, &d)?;
+                logs.push((robot, d));
+            }
+            let extra: Vec<String> = MRCLAM_RUN_ARGS.iter().map(|s| s.to_string()).collect();
+            let mut c = particles(a.particles);
+            c.extend(extra.clone());
+            let mut r = particles(a.reference_particles);
+            r.extend(extra);
+            cooperative_mrclam(&spec(c, r), &logs)?;
+        }
+        [kind, _] => bail!("--dataset: unknown kind {kind:?} (known: mrclam)"),
+        _ => bail!("--dataset takes KIND DIR"),
+    }
+    Ok(())
 }

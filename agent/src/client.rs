@@ -235,6 +235,37 @@ impl MapClient {
         parse_prior(&body).map(Fetched::Fresh)
     }
 
+    /// `PUT /v1/maps/{map}`: creates the map (idempotent; an existing map is fine).
+    pub async fn create_map(&self, map: &str) -> Result<(), ClientError> {
+        let url = self.url(&format!("/v1/maps/{map}"));
+        let r = self
+            .send(2, || {
+                self.auth(self.http.put(&url))
+                    .header(reqwest::header::CONTENT_TYPE, "application/json")
+                    .body("{}")
+            })
+            .await?;
+        if r.status().is_success() {
+            Ok(())
+        } else {
+            Err(Self::fail(r).await)
+        }
+    }
+
+    /// `GET /v1/maps/{map}/versions/{n}`: one stored version (same document as the map).
+    pub async fn fetch_version(&self, map: &str, n: i64) -> Result<PriorMap, ClientError> {
+        let url = self.url(&format!("/v1/maps/{map}/versions/{n}"));
+        let r = self.send(3, || self.auth(self.http.get(&url))).await?;
+        if !r.status().is_success() {
+            return Err(Self::fail(r).await);
+        }
+        let body = r
+            .text()
+            .await
+            .map_err(|e| ClientError::Protocol(e.to_string()))?;
+        parse_prior(&body)
+    }
+
     /// `POST /v1/maps/{map}/contributions` with an Idempotency-Key derived from the body.
     pub async fn upload(&self, map: &str, c: &Contribution) -> Result<UploadOutcome, ClientError> {
         let body = serde_json::to_vec(c).map_err(|e| ClientError::Protocol(e.to_string()))?;

@@ -1,11 +1,17 @@
-//! echomap agent library: the scenario simulator (`sim`), plotting (`plot`) and the CLI; the
-//! Channel-SLAM filter, evaluation and the server client join here as they land.
+//! echomap agent library: the scenario simulator (`sim`), the Channel-SLAM filter
+//! (`filter`), evaluation (`eval`, `evaluate`), the map-server client (`client`, `remote`),
+//! crowds of agent processes (`crowd`), the cooperative experiment (`experiment`), the demo,
+//! plotting and the CLI.
 
 pub mod cli;
 pub mod client;
+pub mod crowd;
+pub mod demo;
 pub mod eval;
 pub mod evaluate;
+pub mod experiment;
 pub mod filter;
+pub mod local_server;
 pub mod mrclam;
 pub mod output;
 pub mod plot;

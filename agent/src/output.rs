@@ -24,6 +24,10 @@ pub struct RunSummary {
     /// mean error of integrating gyro + speed alone, for logs that carry speed
     pub dead_reckoning_mean_m: Option<f64>,
     pub dead_reckoning_final_m: Option<f64>,
+    /// with a prior map: log time (s) of the first accepted match, if any
+    pub prior_matched_at_s: Option<f64>,
+    /// with a prior map: particle-weighted number of transmitters taken over from it
+    pub prior_transmitters_used: Option<f64>,
 }
 
 pub fn summarize(out: &RunOutput, truth: &GroundTruth, log: &MeasurementLog) -> RunSummary {
@@ -65,6 +69,8 @@ pub fn summarize(out: &RunOutput, truth: &GroundTruth, log: &MeasurementLog) -> 
         true_transmitters: n_true,
         dead_reckoning_mean_m: dr_mean,
         dead_reckoning_final_m: dr_final,
+        prior_matched_at_s: out.matches.iter().find(|m| m.accepted).map(|m| m.t),
+        prior_transmitters_used: out.had_prior.then(|| out.filter.prior_transmitters_used()),
     }
 }
 
@@ -83,6 +89,23 @@ pub fn write_run(
     }
     std::fs::write(dir.join("map.json"), out.map.to_json_pretty())?;
     std::fs::write(dir.join("track.csv"), track_csv(&out.rows))?;
+    if out.had_prior {
+        let mut s = String::from("t,accepted,inliers,angle_rad,tx,ty,action,reason\n");
+        for m in &out.matches {
+            s.push_str(&format!(
+                "{},{},{},{},{},{},{},\"{}\"\n",
+                m.t,
+                m.accepted,
+                m.inliers,
+                m.angle_rad,
+                m.tx,
+                m.ty,
+                m.action,
+                m.reason.replace('"', "'")
+            ));
+        }
+        std::fs::write(dir.join("prior_matches.csv"), s)?;
+    }
     for ext in ["png", "svg"] {
         crate::plot::draw_track_and_map(
             &out.rows,
@@ -116,6 +139,15 @@ pub fn print_summary(out: &RunOutput, truth: Option<&GroundTruth>, log: &Measure
             s.converged_transmitters,
             s.true_transmitters
         );
+        if out.had_prior {
+            match s.prior_matched_at_s {
+                Some(t) => println!(
+                    "prior map: matched at t = {t:.1} s, {:.1} transmitters taken over (particle mean)",
+                    s.prior_transmitters_used.unwrap_or(0.0)
+                ),
+                None => println!("prior map: never matched"),
+            }
+        }
         if let (Some(m), Some(f)) = (s.dead_reckoning_mean_m, s.dead_reckoning_final_m) {
             println!("dead reckoning (gyro + speed only): mean error {m:.2} m, final {f:.2} m");
         }

@@ -1,13 +1,14 @@
 //! `run --server URL --map NAME`: fetch the prior map before the run (conditional GET against
 //! the copy cached in the output directory) and upload the user map after it.
 //!
-//! The filter does not use the prior map yet (issue #6: association with prior-map
-//! transmitters); the fetched map is saved as `prior.json` beside the run's outputs.
+//! The fetched map is saved as `prior.json` beside the run's outputs and handed to the
+//! filter (matched while running, then used for association: `filter::prior`).
 
 use crate::cli::ServerArgs;
 use crate::client::{ClientConfig, Contribution, Fetched, MapClient, UploadOutcome, parse_prior};
 use crate::run::RunOutput;
 use anyhow::{Context, Result};
+use echomap_shared::TransmitterMap;
 use std::path::Path;
 
 #[derive(Debug)]
@@ -50,7 +51,7 @@ impl Remote {
     }
 
     /// Fetches the current prior map into `dir/prior.json` (304 keeps the cached copy).
-    pub fn fetch_prior(&self, dir: &Path) -> Result<()> {
+    pub fn fetch_prior(&self, dir: &Path) -> Result<TransmitterMap> {
         std::fs::create_dir_all(dir)?;
         let cache = dir.join("prior.json");
         let cached = std::fs::read_to_string(&cache)
@@ -81,7 +82,7 @@ impl Remote {
             prior.map.len(),
             cache.display()
         );
-        Ok(())
+        Ok(prior.map)
     }
 
     /// Uploads the user map; prints the server's answer and saves it as `dir/upload.json`.

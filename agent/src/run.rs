@@ -2,7 +2,8 @@
 
 use crate::eval::{TrackRow, TruthCols};
 use crate::filter::export::export_map;
-use crate::filter::{Filter, FilterConfig};
+use crate::filter::prior::MatchEvent;
+use crate::filter::{Filter, FilterConfig, PriorTracker};
 use anyhow::Result;
 use echomap_shared::TransmitterMap;
 use echomap_shared::log::{GroundTruth, MeasurementLog};
@@ -13,6 +14,10 @@ pub struct RunOutput {
     pub rows: Vec<TrackRow>,
     pub map: TransmitterMap,
     pub filter: Filter,
+    /// matching attempts against the prior map (empty without one)
+    pub matches: Vec<MatchEvent>,
+    /// whether a prior map was given
+    pub had_prior: bool,
 }
 
 /// Runs the filter over every snapshot. With `truth`, rows carry the errors; the travelled
@@ -22,6 +27,18 @@ pub fn run_filter(
     truth: Option<&GroundTruth>,
     cfg: FilterConfig,
     progress: bool,
+) -> Result<RunOutput> {
+    run_filter_with_prior(log, truth, cfg, progress, None)
+}
+
+/// [`run_filter`] with a prior map: `tracker` matches the agent's map against it every few
+/// seconds of log time and hands it to the filter once a match is accepted.
+pub fn run_filter_with_prior(
+    log: &MeasurementLog,
+    truth: Option<&GroundTruth>,
+    cfg: FilterConfig,
+    progress: bool,
+    mut tracker: Option<PriorTracker>,
 ) -> Result<RunOutput> {
     if let Some(t) = truth {
         anyhow::ensure!(
@@ -51,6 +68,9 @@ pub fn run_filter(
     let mut true_traveled = 0.0;
     for (k, snap) in log.snapshots.iter().enumerate() {
         let stats = filter.step(snap);
+        if let Some(tr) = tracker.as_mut() {
+            tr.after_step(&mut filter, snap.t)?;
+        }
         let truth_cols = truth.map(|t| {
             let p = &t.poses[k];
             if k > 0 {
@@ -84,5 +104,12 @@ pub fn run_filter(
     }
     bar.finish_and_clear();
     let map = export_map(&filter)?;
-    Ok(RunOutput { rows, map, filter })
+    let had_prior = tracker.is_some();
+    Ok(RunOutput {
+        rows,
+        map,
+        filter,
+        matches: tracker.map(|t| t.events).unwrap_or_default(),
+        had_prior,
+    })
 }

@@ -290,6 +290,65 @@ struct Hypothesis {
     loc_score: f64,
 }
 
+/// One-to-one inlier pairs `(user, prior)` under `iso`, greedy by Mahalanobis distance, sorted.
+fn inlier_pairs(
+    iso: &Isometry2<f64>,
+    u: &[Cand],
+    p: &[Cand],
+    grid: &Grid,
+    cfg: &MatchConfig,
+) -> Vec<(usize, usize)> {
+    let mut near = Vec::new();
+    let mut cand_pairs: Vec<(f64, usize, usize)> = Vec::new();
+    let rot = iso.rotation.to_rotation_matrix().into_inner();
+    for (i, uc) in u.iter().enumerate() {
+        let q = iso * uc.p;
+        let cov_u = rot * uc.cov * rot.transpose();
+        grid.near(&q, cfg.inlier_threshold_m, p, &mut near);
+        for &j in &near {
+            if b_compatible(uc, &p[j], cfg) {
+                let r = p[j].p - q;
+                let d2 = (cov_u + p[j].cov)
+                    .cholesky()
+                    .map(|c| r.dot(&c.solve(&r)))
+                    .unwrap_or(f64::INFINITY);
+                if d2 <= cfg.inlier_gate_chi2 {
+                    cand_pairs.push((d2, i, j));
+                }
+            }
+        }
+    }
+    cand_pairs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+    let (mut used_u, mut used_p) = (vec![false; u.len()], vec![false; p.len()]);
+    let mut pairs = Vec::new();
+    for (_, i, j) in cand_pairs {
+        if !used_u[i] && !used_p[j] {
+            used_u[i] = true;
+            used_p[j] = true;
+            pairs.push((i, j));
+        }
+    }
+    pairs.sort_unstable();
+    pairs
+}
+
+/// How many candidate transmitters of `user` agree with `prior` under a given transform
+/// (one-to-one, same gates as matching) — to check whether an earlier match still holds.
+pub fn count_inliers(
+    user: &TransmitterMap,
+    prior: &TransmitterMap,
+    map_from_agent: &Isometry2<f64>,
+    cfg: &MatchConfig,
+) -> usize {
+    let u = candidates(user, cfg);
+    let p = candidates(prior, cfg);
+    if u.is_empty() || p.is_empty() {
+        return 0;
+    }
+    let grid = Grid::new(&p, cfg.inlier_threshold_m.max(1e-3));
+    inlier_pairs(map_from_agent, &u, &p, &grid, cfg).len()
+}
+
 /// Collects one-to-one inlier pairs under `iso` (greedy by distance) and refits.
 fn local_optimize(
     iso: Isometry2<f64>,
@@ -300,38 +359,8 @@ fn local_optimize(
 ) -> Option<Hypothesis> {
     let mut iso = iso;
     let mut last: Vec<(usize, usize)> = Vec::new();
-    let mut near = Vec::new();
     for _ in 0..10 {
-        let mut cand_pairs: Vec<(f64, usize, usize)> = Vec::new();
-        let rot = iso.rotation.to_rotation_matrix().into_inner();
-        for (i, uc) in u.iter().enumerate() {
-            let q = iso * uc.p;
-            let cov_u = rot * uc.cov * rot.transpose();
-            grid.near(&q, cfg.inlier_threshold_m, p, &mut near);
-            for &j in &near {
-                if b_compatible(uc, &p[j], cfg) {
-                    let r = p[j].p - q;
-                    let d2 = (cov_u + p[j].cov)
-                        .cholesky()
-                        .map(|c| r.dot(&c.solve(&r)))
-                        .unwrap_or(f64::INFINITY);
-                    if d2 <= cfg.inlier_gate_chi2 {
-                        cand_pairs.push((d2, i, j));
-                    }
-                }
-            }
-        }
-        cand_pairs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
-        let (mut used_u, mut used_p) = (vec![false; u.len()], vec![false; p.len()]);
-        let mut pairs = Vec::new();
-        for (_, i, j) in cand_pairs {
-            if !used_u[i] && !used_p[j] {
-                used_u[i] = true;
-                used_p[j] = true;
-                pairs.push((i, j));
-            }
-        }
-        pairs.sort_unstable();
+        let pairs = inlier_pairs(&iso, u, p, grid, cfg);
         if pairs.len() < 3 {
             return None;
         }

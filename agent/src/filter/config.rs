@@ -93,6 +93,8 @@ pub struct FilterConfig {
     pub association_gate: f64,
     /// only old transmitters whose position std (√tr P_xy) is at most this are candidates (m)
     pub association_max_spread_m: f64,
+    /// prior-map transmitters are association candidates only with at least this existence
+    pub prior_min_existence: f64,
     /// hexagon circumradius of the visibility grid (m)
     pub hex_size_m: f64,
     /// Beta prior pseudo-counts (ν, ν̄) of seed 001 eq. 12
@@ -130,6 +132,7 @@ impl Default for FilterConfig {
             association_p0: 0.02,
             association_gate: 11.8,
             association_max_spread_m: 3.0,
+            prior_min_existence: 0.5,
             hex_size_m: 2.0,
             visibility_prior: (1.0, 1.0),
             track_hold_s: 0.0,

@@ -2,18 +2,21 @@
 //! seed 002 §4, Algorithm 1). User particles carry the track; per particle every (virtual)
 //! transmitter is a Gaussian mixture over `[x, y, b]` whose components are updated by
 //! square-root cubature Kalman filters. New tracks are associated with old transmitters
-//! (seed 002 §5), visibility is mapped on a hex grid (seed 001 eq. 11–12), and at the end the
+//! (seed 002 §5) or, once the agent's map matches a prior map, with prior-map transmitters
+//! (seed 001 eq. 19, module `prior`), visibility is mapped on a hex grid (seed 001 eq. 11–12), and at the end the
 //! particle ensemble is exported as an `echomap.map.v1` user map.
 
 pub mod config;
 pub mod export;
 pub mod model;
+pub mod prior;
 pub mod rbpf;
 pub mod srckf;
 pub mod visibility;
 pub mod vonmises;
 
 pub use config::{Association, BPrior, FilterConfig, NoiseModel};
+pub use prior::{Prior, PriorSettings, PriorTracker};
 pub use rbpf::{Filter, StepStats};
 
 #[cfg(test)]

@@ -10,6 +10,7 @@
 
 use super::config::{Association, FilterConfig};
 use super::model::{Comp, Pose, h_toa, h_toa_aoa, initialize, residual_toa, residual_toa_aoa};
+use super::prior::Prior;
 use super::srckf::{self, SqrtGaussian};
 use super::visibility::Visibility;
 use super::vonmises;
@@ -41,6 +42,8 @@ pub struct Particle {
     pub txs: Vec<Arc<TxState>>,
     /// active track id → index into `txs`
     pub bound: Vec<(u64, u32)>,
+    /// prior-map transmitters (indices into the prior) this particle has taken over
+    pub prior_used: Vec<u32>,
 }
 
 /// Identity of a transmitter: the track id that created it.
@@ -77,6 +80,8 @@ pub struct Filter {
     prev_t: Option<f64>,
     traveled: f64,
     last_mean: Point2<f64>,
+    /// the prior map in the agent frame, once matched
+    prior: Option<Arc<Prior>>,
 }
 
 /// Per-measurement noise factor and the measurement as a vector.
@@ -125,8 +130,9 @@ impl Meas {
         }
     }
 
-    /// ln N(z; ẑ, P_zz) without updating (for association likelihoods).
-    fn log_likelihood(&self, pose: &Pose, g: &SqrtGaussian) -> Option<f64> {
+    /// `(ln N(z; ẑ, P_zz), squared Mahalanobis distance of the innovation)` without updating
+    /// (for association likelihoods and gating).
+    fn log_likelihood(&self, pose: &Pose, g: &SqrtGaussian) -> Option<(f64, f64)> {
         match self {
             Meas::ToaAoa { z, r_sqrt } => {
                 let p = srckf::predict(
@@ -135,7 +141,7 @@ impl Meas {
                     residual_toa_aoa,
                     &(r_sqrt * r_sqrt.transpose()),
                 );
-                srckf::log_normal(&residual_toa_aoa(z, &p.z_hat), &p.pzz)
+                srckf::log_normal_and_mahalanobis(&residual_toa_aoa(z, &p.z_hat), &p.pzz)
             }
             Meas::Toa { z, r_sqrt } => {
                 let p = srckf::predict(
@@ -144,7 +150,7 @@ impl Meas {
                     residual_toa,
                     &(r_sqrt * r_sqrt.transpose()),
                 );
-                srckf::log_normal(&residual_toa(z, &p.z_hat), &p.pzz)
+                srckf::log_normal_and_mahalanobis(&residual_toa(z, &p.z_hat), &p.pzz)
             }
         }
     }
@@ -280,6 +286,7 @@ impl Filter {
                     log_w: -(n as f64).ln(),
                     txs: Vec::new(),
                     bound: Vec::new(),
+                    prior_used: Vec::new(),
                 }
             })
             .collect();
@@ -296,7 +303,27 @@ impl Filter {
             prev_t: None,
             traveled: 0.0,
             last_mean: Point2::origin(),
+            prior: None,
         }
+    }
+
+    /// Sets (or, with None, drops) the prior map offered to new tracks. Transmitters that
+    /// particles already took over from an earlier prior stay theirs.
+    pub fn set_prior(&mut self, prior: Option<Prior>) {
+        self.prior = prior.map(Arc::new);
+    }
+
+    pub fn prior(&self) -> Option<&Prior> {
+        self.prior.as_deref()
+    }
+
+    /// Particle-weighted mean number of prior-map transmitters taken over.
+    pub fn prior_transmitters_used(&self) -> f64 {
+        self.particles
+            .iter()
+            .zip(self.weights())
+            .map(|(p, w)| w * p.prior_used.len() as f64)
+            .sum()
     }
 
     pub fn config(&self) -> &FilterConfig {
@@ -396,6 +423,7 @@ impl Filter {
         {
             let cfg = &self.cfg;
             let vis = &self.visibility;
+            let prior = self.prior.as_deref();
             let speed = snap.speed;
             let gyro = snap.gyro;
             self.particles
@@ -417,6 +445,7 @@ impl Filter {
                             p.new_track(
                                 cfg,
                                 vis,
+                                prior,
                                 &current,
                                 *track,
                                 m,
@@ -566,13 +595,16 @@ impl Particle {
         self.pose.heading = h_new;
     }
 
-    /// A track this particle has not bound yet: associate it with an old transmitter or
-    /// start a new one (seed 002 §5, seed 001 eq. 19 with the visibility factor).
+    /// A track this particle has not bound yet: associate it with an old transmitter, a
+    /// prior-map transmitter or none (seed 002 §5; seed 001 eq. 19: visibility term × state
+    /// likelihood). A track associated with a prior transmitter starts from that
+    /// transmitter's mixture (agent frame) instead of the wide initialization.
     #[allow(clippy::too_many_arguments)]
     fn new_track(
         &mut self,
         cfg: &FilterConfig,
         vis: &Visibility,
+        prior: Option<&Prior>,
         current: &BTreeSet<u64>,
         track: u64,
         m: &Meas,
@@ -582,12 +614,17 @@ impl Particle {
         merge_now: bool,
         dt: f64,
     ) {
+        #[derive(Clone, Copy)]
+        enum Cand {
+            Old(usize),
+            Prior(usize),
+        }
         let ln_p0 = cfg.association_p0.ln();
-        let mut chosen: Option<usize> = None;
+        let mut chosen: Option<Cand> = None;
         if cfg.association != Association::Off {
-            let cell = vis.grid().cell_of(&Point2::new(self.pose.x, self.pose.y));
-            let (sd, sa) = m.sigmas();
-            let mut cands: Vec<(usize, f64)> = Vec::new();
+            let here = Point2::new(self.pose.x, self.pose.y);
+            let cell = vis.grid().cell_of(&here);
+            let mut cands: Vec<(Cand, f64)> = Vec::new();
             for (idx, tx) in self.txs.iter().enumerate() {
                 // only transmitters not detected right now are candidates ("old", seed 002 §5)
                 if self
@@ -597,27 +634,39 @@ impl Particle {
                 {
                     continue;
                 }
-                if !gate(tx, &self.pose, m, sd, sa) {
-                    continue;
+                if let Some(ll) = candidate_log_likelihood(&tx.comps, &self.pose, m, cfg) {
+                    let pv = vis.probability(tx.identity as usize, cell);
+                    cands.push((Cand::Old(idx), ll + pv.ln()));
                 }
-                let ll = log_sum_exp(tx.comps.iter().map(|c| {
-                    c.weight.ln()
-                        + m.log_likelihood(&self.pose, &c.g)
-                            .unwrap_or(f64::NEG_INFINITY)
-                }));
-                let pv = vis.probability(tx.identity as usize, cell);
-                cands.push((idx, ll + pv.ln()));
+            }
+            if let Some(prior) = prior {
+                for (idx, ptx) in prior.txs.iter().enumerate() {
+                    if ptx.existence < cfg.prior_min_existence
+                        || ptx.spread_m > cfg.association_max_spread_m
+                        || self.prior_used.contains(&(idx as u32))
+                    {
+                        continue;
+                    }
+                    if let Some(ll) = candidate_log_likelihood(&ptx.comps, &self.pose, m, cfg) {
+                        let pv = prior.visibility(idx, &here);
+                        cands.push((Cand::Prior(idx), ll + pv.ln()));
+                    }
+                }
             }
             match cfg.association {
                 Association::Ml => {
-                    let best = cands
-                        .iter()
-                        .cloned()
-                        .fold((usize::MAX, ln_p0), |a, b| if b.1 > a.1 { b } else { a });
+                    let best =
+                        cands
+                            .iter()
+                            .copied()
+                            .fold(
+                                (None, ln_p0),
+                                |a: (Option<Cand>, f64), b| {
+                                    if b.1 > a.1 { (Some(b.0), b.1) } else { a }
+                                },
+                            );
                     self.log_w += best.1;
-                    if best.0 != usize::MAX {
-                        chosen = Some(best.0);
-                    }
+                    chosen = best.0;
                 }
                 Association::Das => {
                     let total =
@@ -625,10 +674,10 @@ impl Particle {
                     self.log_w += total;
                     let u: f64 = rng.random();
                     let mut acc = 0.0;
-                    for (idx, l) in &cands {
+                    for (c, l) in &cands {
                         acc += (l - total).exp();
                         if u < acc {
-                            chosen = Some(*idx);
+                            chosen = Some(*c);
                             break;
                         }
                     }
@@ -637,7 +686,7 @@ impl Particle {
             }
         }
         match chosen {
-            Some(idx) => {
+            Some(Cand::Old(idx)) => {
                 self.bound.push((track, idx as u32));
                 let tx = Arc::make_mut(&mut self.txs[idx]);
                 // The association factor already carries the likelihood; update the state only.
@@ -646,6 +695,20 @@ impl Particle {
                     tx.reliability_m += self.pose.speed * dt;
                     updated[idx] = true;
                 }
+            }
+            Some(Cand::Prior(pidx)) => {
+                let prior = prior.expect("a prior candidate needs a prior");
+
+                let mut comps = prior.txs[pidx].comps.clone();
+                let _ = update_mixture(&mut comps, m, &self.pose, cfg, merge_now);
+                self.prior_used.push(pidx as u32);
+                self.txs.push(Arc::new(TxState {
+                    identity,
+                    comps,
+                    reliability_m: 0.0,
+                }));
+                self.bound.push((track, (self.txs.len() - 1) as u32));
+                updated.push(true);
             }
             None => {
                 let (sd, sa) = m.sigmas();
@@ -665,11 +728,38 @@ impl Particle {
     }
 }
 
-/// Cheap gate before the cubature likelihood: the measured distance (and angle) must lie
-/// within 5σ of what the transmitter's mixture mean predicts, σ including its spread.
-fn gate(tx: &TxState, pose: &Pose, m: &Meas, sd: f64, sa: f64) -> bool {
+/// Association log-likelihood `ln Σ_c w_c N(z; ẑ_c, P_zz,c)` of a candidate mixture, or None
+/// when the candidate is not converged enough (position std above
+/// `association_max_spread_m`) or fails the gates: the cheap 5σ gate on the mixture mean,
+/// then the χ² gate `association_gate` on the innovation of its closest component.
+fn candidate_log_likelihood(
+    comps: &[Comp],
+    pose: &Pose,
+    m: &Meas,
+    cfg: &FilterConfig,
+) -> Option<f64> {
+    let (sd, sa) = m.sigmas();
+    if !gate(comps, pose, m, sd, sa, cfg.association_max_spread_m) {
+        return None;
+    }
+    let terms: Vec<(f64, f64)> = comps
+        .iter()
+        .map(|c| match m.log_likelihood(pose, &c.g) {
+            Some((l, d2)) => (c.weight.ln() + l, d2),
+            None => (f64::NEG_INFINITY, f64::INFINITY),
+        })
+        .collect();
+    let min_d2 = terms.iter().map(|t| t.1).fold(f64::INFINITY, f64::min);
+    let ll = log_sum_exp(terms.iter().map(|t| t.0));
+    (min_d2 <= cfg.association_gate && ll.is_finite()).then_some(ll)
+}
+
+/// Cheap gate before the cubature likelihood: the mixture's position std must be at most
+/// `max_spread`, and the measured distance (and angle) must lie within 5σ of what its mean
+/// predicts, σ including its spread.
+fn gate(comps: &[Comp], pose: &Pose, m: &Meas, sd: f64, sa: f64, max_spread: f64) -> bool {
     let Some((mean, cov)) = mixture::moments(
-        &tx.comps
+        &comps
             .iter()
             .map(|c| Component::new(c.weight, c.g.mean, c.g.cov()))
             .collect::<Vec<_>>(),
@@ -677,6 +767,9 @@ fn gate(tx: &TxState, pose: &Pose, m: &Meas, sd: f64, sa: f64) -> bool {
         return false;
     };
     let spread = cov.trace().max(0.0).sqrt();
+    if (cov[(0, 0)] + cov[(1, 1)]).max(0.0).sqrt() > max_spread {
+        return false;
+    }
     let (dx, dy) = (mean.x - pose.x, mean.y - pose.y);
     let range = dx.hypot(dy);
     let d_pred = range + mean.z;

@@ -196,3 +196,167 @@ fn association_recognizes_a_regained_transmitter() {
         mean_existence[1]
     );
 }
+
+/// The true virtual transmitters of a simulated track as a map in another frame
+/// (`map_from_local`), each with an isotropic position std of `std_m`.
+fn true_prior(
+    out: &SimOutput,
+    map_from_local: &nalgebra::Isometry2<f64>,
+    std_m: f64,
+) -> echomap_shared::TransmitterMap {
+    use echomap_shared::map::Transmitter;
+    use echomap_shared::mixture::Component;
+    use nalgebra::{Matrix3, Point2, Vector3};
+    let mut seen: Vec<[f64; 3]> = Vec::new();
+    let mut txs = Vec::new();
+    for t in &out.truth.transmitters {
+        let s = t.state;
+        if seen
+            .iter()
+            .any(|q| (0..3).all(|k| (q[k] - s[k]).abs() < 1e-6))
+        {
+            continue;
+        }
+        seen.push(s);
+        let p = map_from_local * Point2::new(s[0], s[1]);
+        txs.push(Transmitter {
+            id: format!("p{}", t.track),
+            components: vec![Component::new(
+                1.0,
+                Vector3::new(p.x, p.y, s[2]),
+                Matrix3::identity() * std_m * std_m,
+            )],
+            existence: 1.0,
+            reliability_m: 50.0,
+            visibility: Default::default(),
+        });
+    }
+    echomap_shared::TransmitterMap::new(2.0, txs).unwrap()
+}
+
+fn mean_mae(run: &crate::run::RunOutput) -> f64 {
+    let v: Vec<f64> = run
+        .rows
+        .iter()
+        .filter_map(|r| r.truth.map(|t| t.mae_m))
+        .collect();
+    v.iter().sum::<f64>() / v.len() as f64
+}
+
+#[test]
+fn a_correct_prior_map_is_matched_and_lowers_the_error() {
+    // The true virtual transmitters of the track, in a frame rotated by 0.7 rad and shifted:
+    // the agent must find the transform while running, take the prior's transmitters over
+    // for new tracks (seed 001 eq. 19), and end with a lower mean MAE than alone, on
+    // average over three seeds (tolerance: at least 20 % lower).
+    use super::{PriorSettings, PriorTracker};
+    use crate::run::run_filter_with_prior;
+    let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
+    let (mut alone, mut with) = (0.0, 0.0);
+    for seed in [1u64, 2, 3] {
+        let out = simulate(
+            &indoor(),
+            "user02",
+            SimOptions {
+                seed,
+                toa_only: false,
+            },
+        )
+        .unwrap();
+        let prior = true_prior(&out, &map_from_local, 0.3);
+        let a = run_filter(&out.log, Some(&out.truth), cfg(seed, 200), false).unwrap();
+        let tracker = PriorTracker::new(prior, PriorSettings::default(), seed);
+        let b = run_filter_with_prior(
+            &out.log,
+            Some(&out.truth),
+            cfg(seed, 200),
+            false,
+            Some(tracker),
+        )
+        .unwrap();
+        let first = b.matches.iter().find(|m| m.accepted).expect("matched");
+        assert!(
+            (first.angle_rad - 0.7).abs() < 0.05
+                && (first.tx - 5.0).abs() < 1.0
+                && (first.ty + 3.0).abs() < 1.0,
+            "seed {seed}: first match {first:?}"
+        );
+        assert!(b.filter.prior_transmitters_used() >= 5.0);
+        alone += mean_mae(&a) / 3.0;
+        with += mean_mae(&b) / 3.0;
+    }
+    assert!(
+        with < 0.8 * alone,
+        "mean MAE with the prior {with:.3} m, alone {alone:.3} m"
+    );
+}
+
+#[test]
+fn an_unrelated_prior_map_is_never_used() {
+    // A prior of the same size with the transmitters of another place (positions drawn at
+    // random): no match is accepted, nothing is taken over, the run equals the one alone.
+    use super::{PriorSettings, PriorTracker};
+    use crate::run::run_filter_with_prior;
+    use rand::{RngExt, SeedableRng};
+    let out = simulate(
+        &indoor(),
+        "user02",
+        SimOptions {
+            seed: 4,
+            toa_only: false,
+        },
+    )
+    .unwrap();
+    let truth_prior = true_prior(&out, &nalgebra::Isometry2::identity(), 0.3);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+    let scrambled: Vec<_> = truth_prior
+        .transmitters()
+        .iter()
+        .map(|t| {
+            let mut t = t.clone();
+            t.components[0].mean.x = rng.random_range(-20.0..60.0);
+            t.components[0].mean.y = rng.random_range(-20.0..40.0);
+            t
+        })
+        .collect();
+    let prior = echomap_shared::TransmitterMap::new(2.0, scrambled).unwrap();
+    let a = run_filter(&out.log, Some(&out.truth), cfg(4, 150), false).unwrap();
+    let tracker = PriorTracker::new(prior, PriorSettings::default(), 4);
+    let b = run_filter_with_prior(
+        &out.log,
+        Some(&out.truth),
+        cfg(4, 150),
+        false,
+        Some(tracker),
+    )
+    .unwrap();
+    assert!(!b.matches.is_empty());
+    assert!(b.matches.iter().all(|m| !m.accepted), "{:?}", b.matches);
+    assert_eq!(a.rows, b.rows);
+}
+
+#[test]
+fn transform_uncertainty_follows_the_fit_geometry() {
+    // n points on a circle of radius R with residual std σ: var_t = σ²/n,
+    // var_θ = σ²/(n R²); a point at distance r from the centroid gets (r²·var_θ) across.
+    use super::prior::TransformUncertainty;
+    use nalgebra::Point2;
+    let (n, r, sigma) = (8usize, 10.0, 0.5);
+    let pts: Vec<Point2<f64>> = (0..n)
+        .map(|k| {
+            let a = k as f64 * std::f64::consts::TAU / n as f64;
+            Point2::new(3.0 + r * a.cos(), -2.0 + r * a.sin())
+        })
+        .collect();
+    // residuals whose Σr²/(n − 3) = σ²
+    let res = vec![sigma * ((n as f64 - 3.0) / n as f64).sqrt(); n];
+    let u = TransformUncertainty::from_fit(&pts, &res, 0.0).unwrap();
+    approx::assert_relative_eq!(u.centroid.x, 3.0, epsilon = 1e-9);
+    approx::assert_relative_eq!(u.var_t, sigma * sigma / n as f64, epsilon = 1e-12);
+    approx::assert_relative_eq!(
+        u.var_theta,
+        sigma * sigma / (n as f64 * r * r),
+        epsilon = 1e-12
+    );
+    assert!(TransformUncertainty::from_fit(&pts[..2], &res[..2], 0.0).is_none());
+}

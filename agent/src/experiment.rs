@@ -1,0 +1,405 @@
+//! `echomap-agent experiment cooperative` (seed 001 §V, Fig. 5): per run, a crowd of users
+//! builds a map on a server one after another; the reference user then runs with the map
+//! version left by the first c users, for every c asked (0 = alone), and its MAE against
+//! travelled distance is collected over the runs.
+//!
+//! Real data (`--dataset mrclam DIR`): each robot in turn is the reference; the other robots
+//! build the map in order, and the reference robot runs alone and with their map.
+
+use crate::crowd::{self, CrowdSpec, Source, User, UserResult};
+use crate::eval::percentile;
+use crate::evaluate::{Curves, write_curves};
+use crate::local_server::LocalServer;
+use anyhow::{Context, Result};
+use std::path::{Path, PathBuf};
+
+/// Settings of one cooperative experiment.
+#[derive(Debug, Clone)]
+pub struct ExperimentSpec {
+    pub exe: PathBuf,
+    /// existing server (else one is started on loopback)
+    pub server: Option<String>,
+    pub token_file: Option<PathBuf>,
+    pub runs: u64,
+    pub first_seed: u64,
+    pub parallel: usize,
+    /// `run` flags of contributors and of the reference user
+    pub crowd_args: Vec<String>,
+    pub reference_args: Vec<String>,
+    pub out: PathBuf,
+    pub progress: bool,
+}
+
+/// One evaluated configuration: its label and the per-run `(traveled, mae, err)` series.
+type Series = Vec<(f64, f64, f64)>;
+
+fn read_track(dir: &Path) -> Result<Series> {
+    let path = dir.join("track.csv");
+    let text =
+        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap_or("").split(',').collect();
+    let col = |n: &str| header.iter().position(|h| *h == n);
+    let (Some(tr), Some(mae), Some(err)) = (col("traveled_m"), col("mae_m"), col("err_m")) else {
+        anyhow::bail!("{} lacks traveled_m/mae_m/err_m", path.display());
+    };
+    lines
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            let p = |k: usize| -> Result<f64> {
+                f.get(k)
+                    .and_then(|v| v.parse().ok())
+                    .with_context(|| format!("bad row in {}: {l}", path.display()))
+            };
+            Ok((p(tr)?, p(mae)?, p(err)?))
+        })
+        .collect()
+}
+
+struct Server {
+    url: String,
+    token_file: Option<PathBuf>,
+    _local: Option<LocalServer>,
+}
+
+fn server(spec: &ExperimentSpec) -> Result<Server> {
+    Ok(match &spec.server {
+        Some(url) => Server {
+            url: url.clone(),
+            token_file: spec.token_file.clone(),
+            _local: None,
+        },
+        None => {
+            let local = LocalServer::start()?;
+            println!(
+                "map server on {} (SQLite {})",
+                local.url,
+                local.database.display()
+            );
+            Server {
+                url: local.url.clone(),
+                token_file: Some(local.token_file.clone()),
+                _local: Some(local),
+            }
+        }
+    })
+}
+
+fn client(s: &Server) -> Result<(crate::client::MapClient, tokio::runtime::Runtime)> {
+    let mut cfg = crate::client::ClientConfig::new(&s.url);
+    cfg.token = s
+        .token_file
+        .as_deref()
+        .map(crate::remote::read_token)
+        .transpose()?;
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    Ok((crate::client::MapClient::new(cfg)?, rt))
+}
+
+/// Builds a map from `users` on `map` and returns their results.
+fn build_map(
+    spec: &ExperimentSpec,
+    s: &Server,
+    map: &str,
+    users: &[User],
+    dir: &Path,
+) -> Result<Vec<UserResult>> {
+    let (c, rt) = client(s)?;
+    rt.block_on(c.create_map(map))
+        .with_context(|| format!("creating map {map:?}"))?;
+    let cs = CrowdSpec {
+        exe: spec.exe.clone(),
+        server: s.url.clone(),
+        map: map.to_owned(),
+        token_file: s.token_file.clone(),
+        // contributors build the map one after another (seed 001 §V)
+        parallel: 1,
+        run_args: spec.crowd_args.clone(),
+        out: dir.to_path_buf(),
+        progress: spec.progress,
+    };
+    let results = crowd::run_crowd(&cs, users);
+    std::fs::write(dir.join("crowd.md"), crowd::table(&results))?;
+    Ok(results)
+}
+
+/// Saves version `v` of `map` as a prior file (None for v = 0).
+fn save_version(s: &Server, map: &str, v: i64, path: &Path) -> Result<Option<PathBuf>> {
+    if v == 0 {
+        return Ok(None);
+    }
+    let (c, rt) = client(s)?;
+    let p = rt
+        .block_on(c.fetch_version(map, v))
+        .with_context(|| format!("fetching {map:?} version {v}"))?;
+    std::fs::write(path, &p.body)?;
+    Ok(Some(path.to_path_buf()))
+}
+
+/// Runs the reference user once per (label, prior) in parallel batches; returns the series.
+fn run_references(
+    spec: &ExperimentSpec,
+    reference: &User,
+    jobs: &[(String, Option<PathBuf>)],
+    dir: &Path,
+) -> Vec<Result<Series>> {
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let out: std::sync::Mutex<Vec<Option<Result<Series>>>> =
+        std::sync::Mutex::new((0..jobs.len()).map(|_| None).collect());
+    std::thread::scope(|sc| {
+        for _ in 0..spec.parallel.clamp(1, jobs.len().max(1)) {
+            sc.spawn(|| {
+                loop {
+                    let i = next.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                    let Some((label, prior)) = jobs.get(i) else {
+                        break;
+                    };
+                    let d = dir.join(format!("reference-{label}"));
+                    let mut args = crowd::run_args(reference, &d, &spec.reference_args);
+                    if let Some(p) = prior {
+                        args.extend(["--prior".into(), p.display().to_string()]);
+                    }
+                    let r = crowd::run_process(&spec.exe, &args, &d).and_then(|_| read_track(&d));
+                    out.lock().expect("no panic holds the lock")[i] = Some(r);
+                }
+            });
+        }
+    });
+    out.into_inner()
+        .expect("no panic holds the lock")
+        .into_iter()
+        .map(|r| r.expect("every job ran"))
+        .collect()
+}
+
+fn label_of(c: usize) -> String {
+    if c == 0 {
+        "single-user".into()
+    } else {
+        format!("c{c:02}")
+    }
+}
+
+/// Final and mean MAE per configuration: a Markdown table.
+fn results_table(all: &[Curves], header: &str) -> String {
+    let mut s = format!(
+        "| {header} | runs | final MAE median (m) | final 5th–95th (m) | mean MAE median (m) | mean MAE mean (m) |\n| --- | --- | --- | --- | --- | --- |\n"
+    );
+    for c in all {
+        s.push_str(&format!(
+            "| {} | {} | {:.2} | {:.2}–{:.2} | {:.2} | {:.2} |\n",
+            c.label,
+            c.final_mae.len(),
+            percentile(&c.final_mae, 0.5),
+            percentile(&c.final_mae, 0.05),
+            percentile(&c.final_mae, 0.95),
+            percentile(&c.mean_mae, 0.5),
+            c.mean_mae.iter().sum::<f64>() / c.mean_mae.len().max(1) as f64,
+        ));
+    }
+    s
+}
+
+/// The simulated experiment: `contributors` (sorted, may include 0) out of the scenario's
+/// `users` tracks; the reference user walks `reference_track`.
+pub fn cooperative_scenario(
+    spec: &ExperimentSpec,
+    scenario: &str,
+    crowd_tracks: &[String],
+    reference_track: &str,
+    contributors: &[usize],
+) -> Result<Vec<Curves>> {
+    let max_c = contributors.iter().copied().max().unwrap_or(0);
+    anyhow::ensure!(
+        max_c <= crowd_tracks.len(),
+        "{max_c} contributors asked, the scenario has {} user tracks",
+        crowd_tracks.len()
+    );
+    let s = server(spec)?;
+    let mut per_c: Vec<Vec<Series>> = vec![Vec::new(); contributors.len()];
+    for run in 0..spec.runs {
+        let seed = spec.first_seed + run;
+        let dir = spec.out.join(format!("run-seed{seed}"));
+        std::fs::create_dir_all(&dir)?;
+        let map = format!("coop-{}-seed{seed}", sanitize(scenario));
+        println!(
+            "run {}/{} (seed {seed}): {max_c} contributors build map {map:?}",
+            run + 1,
+            spec.runs
+        );
+        let users: Vec<User> = crowd_tracks[..max_c]
+            .iter()
+            .enumerate()
+            .map(|(k, t)| User {
+                name: t.clone(),
+                source: Source::Scenario {
+                    scenario: scenario.to_owned(),
+                    track: t.clone(),
+                },
+                seed: seed * 1000 + k as u64 + 1,
+            })
+            .collect();
+        let results = build_map(spec, &s, &map, &users, &dir)?;
+        print!("{}", crowd::table(&results));
+        let mut jobs = Vec::new();
+        for &c in contributors {
+            let v = results[..c]
+                .iter()
+                .filter_map(|r| r.version)
+                .max()
+                .unwrap_or(0);
+            let prior = save_version(&s, &map, v, &dir.join(format!("prior-c{c:02}.json")))?;
+            anyhow::ensure!(
+                c == 0 || prior.is_some(),
+                "none of the first {c} contributors' uploads was accepted (run seed {seed})"
+            );
+            jobs.push((label_of(c), prior));
+        }
+        let reference = User {
+            name: "reference".into(),
+            source: Source::Scenario {
+                scenario: scenario.to_owned(),
+                track: reference_track.to_owned(),
+            },
+            seed,
+        };
+        println!("  reference user with {} priors …", jobs.len());
+        for (k, r) in run_references(spec, &reference, &jobs, &dir)
+            .into_iter()
+            .enumerate()
+        {
+            let series = r.with_context(|| format!("reference run {} (seed {seed})", jobs[k].0))?;
+            println!(
+                "  {:>11}: final MAE {:.2} m",
+                jobs[k].0,
+                series.last().map(|x| x.1).unwrap_or(f64::NAN)
+            );
+            per_c[k].push(series);
+        }
+    }
+    let all: Vec<Curves> = contributors
+        .iter()
+        .zip(per_c)
+        .map(|(&c, runs)| Curves::from_runs(label_of(c), &runs, Vec::new()))
+        .collect();
+    finish(
+        &all,
+        &format!(
+            "{scenario} / {reference_track}, {} runs: reference user vs contributors",
+            spec.runs
+        ),
+        "contributors",
+        &spec.out,
+    )?;
+    Ok(all)
+}
+
+fn sanitize(s: &str) -> String {
+    let base = Path::new(s)
+        .file_stem()
+        .and_then(|x| x.to_str())
+        .unwrap_or(s)
+        .to_ascii_lowercase();
+    let clean: String = base
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' {
+                c
+            } else {
+                '-'
+            }
+        })
+        .take(32)
+        .collect();
+    if clean.is_empty() { "x".into() } else { clean }
+}
+
+fn finish(all: &[Curves], title: &str, header: &str, out: &Path) -> Result<()> {
+    write_curves(all, title, out)?;
+    let table = results_table(all, header);
+    std::fs::write(out.join("results.md"), &table)?;
+    println!("\n{table}");
+    println!(
+        "wrote {} (curves <label>.csv, error.png/svg, summary.json, results.md)",
+        out.display()
+    );
+    Ok(())
+}
+
+/// MRCLAM: each robot in `robots` is the reference once; the other robots (in order) build
+/// a map, then the reference runs alone and with it.
+pub fn cooperative_mrclam(
+    spec: &ExperimentSpec,
+    logs: &[(u32, PathBuf)],
+) -> Result<Vec<(u32, Curves, Curves)>> {
+    let s = server(spec)?;
+    let mut out = Vec::new();
+    for (reference_robot, reference_log) in logs {
+        let mut alone = Vec::new();
+        let mut with = Vec::new();
+        for run in 0..spec.runs {
+            let seed = spec.first_seed + run;
+            let dir = spec
+                .out
+                .join(format!("robot{reference_robot}/run-seed{seed}"));
+            std::fs::create_dir_all(&dir)?;
+            let map = format!("coop-mrclam-ref{reference_robot}-seed{seed}");
+            let users: Vec<User> = logs
+                .iter()
+                .filter(|(r, _)| r != reference_robot)
+                .map(|(r, d)| User {
+                    name: format!("robot{r}"),
+                    source: Source::Log(d.clone()),
+                    seed: seed * 1000 + *r as u64,
+                })
+                .collect();
+            println!(
+                "robot {reference_robot} as reference, seed {seed}: robots {} build map {map:?}",
+                users
+                    .iter()
+                    .map(|u| u.name.trim_start_matches("robot"))
+                    .collect::<Vec<_>>()
+                    .join(",")
+            );
+            let results = build_map(spec, &s, &map, &users, &dir)?;
+            print!("{}", crowd::table(&results));
+            let v = results.iter().filter_map(|r| r.version).max().unwrap_or(0);
+            let prior = save_version(&s, &map, v, &dir.join("prior.json"))?;
+            let reference = User {
+                name: format!("robot{reference_robot}"),
+                source: Source::Log(reference_log.clone()),
+                seed,
+            };
+            let jobs = vec![
+                ("alone".to_string(), None),
+                ("with-others".to_string(), prior),
+            ];
+            let mut r = run_references(spec, &reference, &jobs, &dir).into_iter();
+            alone.push(r.next().expect("two jobs")?);
+            with.push(r.next().expect("two jobs")?);
+        }
+        let a = Curves::from_runs(format!("robot{reference_robot}-alone"), &alone, Vec::new());
+        let w = Curves::from_runs(
+            format!("robot{reference_robot}-with-others"),
+            &with,
+            Vec::new(),
+        );
+        out.push((*reference_robot, a, w));
+    }
+    let all: Vec<Curves> = out
+        .iter()
+        .flat_map(|(_, a, w)| [a.clone(), w.clone()])
+        .collect();
+    finish(
+        &all,
+        &format!(
+            "MRCLAM, {} runs: each robot alone and with the others' map",
+            spec.runs
+        ),
+        "robot / prior",
+        &spec.out,
+    )?;
+    Ok(out)
+}

@@ -1,0 +1,293 @@
+//! A prior map in the agent's local frame (seed 001 §III): the crowd-sourced map, matched
+//! against the agent's own map while it runs and transformed into its frame, offers its
+//! transmitters as association candidates for new tracks (seed 001 eq. 19).
+//!
+//! [`PriorTracker`] re-matches periodically: an accepted match (re)places the prior in the
+//! filter with the newer transform; when matching fails and the transform in use no longer
+//! has `min_inliers` agreeing transmitters in the agent's current map, the prior is dropped
+//! (transmitters already taken over by particles stay, as the particles' own).
+
+use super::model::Comp;
+use super::rbpf::Filter;
+use super::srckf::SqrtGaussian;
+use crate::filter::export::export_map;
+use anyhow::Result;
+use echomap_shared::map::TransmitterMap;
+use echomap_shared::matching::{MatchConfig, count_inliers, match_maps};
+use echomap_shared::{Beta, HexCell, HexGrid};
+use nalgebra::{Isometry2, Point2};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::ops::AddAssign;
+
+/// One prior-map transmitter, in the agent frame.
+#[derive(Debug, Clone)]
+pub struct PriorTx {
+    /// its id in the prior map
+    pub id: String,
+    pub comps: Vec<Comp>,
+    pub existence: f64,
+    /// position std √tr(P_xy) of the mixture (m)
+    pub spread_m: f64,
+    visibility: BTreeMap<HexCell, Beta>,
+}
+
+/// Uncertainty of an estimated rigid transform, for inflating what it carries: a point at
+/// `p` (agent frame) gets `var_t·I + var_theta·‖p − centroid‖²·u⊥u⊥ᵀ` added to its position
+/// covariance (u⊥ perpendicular to p − centroid) — the first-order covariance of a 2D rigid
+/// least-squares fit with isotropic residuals.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TransformUncertainty {
+    pub centroid: Point2<f64>,
+    pub var_t: f64,
+    pub var_theta: f64,
+}
+
+impl TransformUncertainty {
+    /// From the agent-frame positions of a match's inliers and their residuals (m): residual
+    /// variance σ² = Σr²/(n − 3) (at least `floor_m²`), var_t = σ²/n, var_θ = σ²/Σ‖pᵢ − c‖².
+    pub fn from_fit(points: &[Point2<f64>], residuals_m: &[f64], floor_m: f64) -> Option<Self> {
+        let n = points.len();
+        if n < 3 || residuals_m.len() != n {
+            return None;
+        }
+        let centroid = Point2::from(
+            points
+                .iter()
+                .map(|p| p.coords)
+                .sum::<nalgebra::Vector2<f64>>()
+                / n as f64,
+        );
+        let spread: f64 = points.iter().map(|p| (p - centroid).norm_squared()).sum();
+        let sigma2 = (residuals_m.iter().map(|r| r * r).sum::<f64>() / (n as f64 - 3.0).max(1.0))
+            .max(floor_m * floor_m);
+        (spread > 0.0).then(|| TransformUncertainty {
+            centroid,
+            var_t: sigma2 / n as f64,
+            var_theta: sigma2 / spread,
+        })
+    }
+
+    fn extra_cov(&self, at: &Point2<f64>) -> nalgebra::Matrix2<f64> {
+        let d = at - self.centroid;
+        let perp = nalgebra::Vector2::new(-d.y, d.x);
+        nalgebra::Matrix2::identity() * self.var_t + perp * perp.transpose() * self.var_theta
+    }
+}
+
+/// The prior map's transmitters expressed in the agent frame.
+#[derive(Debug, Clone)]
+pub struct Prior {
+    pub agent_from_map: Isometry2<f64>,
+    pub txs: Vec<PriorTx>,
+    grid: HexGrid,
+    visibility_prior: (f64, f64),
+}
+
+impl Prior {
+    /// Transforms `map` (map frame) into the agent frame, adding the transform's uncertainty
+    /// (when given) to every component. Transmitters whose components are not usable as
+    /// square-root Gaussians are left out.
+    pub fn new(
+        map: &TransmitterMap,
+        agent_from_map: Isometry2<f64>,
+        uncertainty: Option<&TransformUncertainty>,
+        floor_m: f64,
+        visibility_prior: (f64, f64),
+    ) -> Self {
+        let local = map.transformed(&agent_from_map);
+        let txs = local
+            .transmitters()
+            .iter()
+            .filter_map(|t| {
+                let comps: Vec<Comp> = t
+                    .components
+                    .iter()
+                    .filter_map(|c| {
+                        let mut cov = c.cov;
+                        cov[(0, 0)] += floor_m * floor_m;
+                        cov[(1, 1)] += floor_m * floor_m;
+                        if let Some(u) = uncertainty {
+                            let extra = u.extra_cov(&Point2::new(c.mean.x, c.mean.y));
+                            cov.fixed_view_mut::<2, 2>(0, 0).add_assign(&extra);
+                        }
+                        SqrtGaussian::from_cov(c.mean, &cov).map(|g| Comp {
+                            weight: c.weight,
+                            g,
+                        })
+                    })
+                    .collect();
+                if comps.len() != t.components.len() {
+                    return None;
+                }
+                let (_, cov) = t.moments();
+                Some(PriorTx {
+                    id: t.id.clone(),
+                    comps,
+                    existence: t.existence,
+                    spread_m: (cov[(0, 0)] + cov[(1, 1)]).max(0.0).sqrt(),
+                    visibility: t.visibility.clone(),
+                })
+            })
+            .collect();
+        Prior {
+            agent_from_map,
+            txs,
+            grid: HexGrid::new(local.hex_size_m()),
+            visibility_prior,
+        }
+    }
+
+    /// Visibility term of eq. 19 for prior transmitter `idx` at `at` (agent frame): the mean
+    /// of Beta(α + ν, β + ν̄) of the prior's counts in that hexagon.
+    pub fn visibility(&self, idx: usize, at: &Point2<f64>) -> f64 {
+        let cell = self.grid.cell_of(at);
+        let (a, b) = self.txs[idx]
+            .visibility
+            .get(&cell)
+            .map(|b| (b.alpha, b.beta))
+            .unwrap_or((0.0, 0.0));
+        let (nu, nubar) = self.visibility_prior;
+        (a + nu) / (a + b + nu + nubar)
+    }
+}
+
+/// How often and how the agent matches its map against the prior.
+#[derive(Debug, Clone)]
+pub struct PriorSettings {
+    /// seconds of log time between matching attempts; default 5 s
+    pub match_every_s: f64,
+    /// the first attempt not before this much log time has passed (s); default 5 s
+    pub first_match_s: f64,
+    /// floor of the residual std used for the transform's uncertainty (m); default 0.3
+    pub residual_floor_m: f64,
+    /// std added in quadrature to the x/y covariance of every prior transmitter (m): a
+    /// crowd map is distorted by its contributors' track errors beyond its covariances;
+    /// default 0.5
+    pub position_floor_m: f64,
+    pub matching: MatchConfig,
+}
+
+impl Default for PriorSettings {
+    fn default() -> Self {
+        PriorSettings {
+            match_every_s: 5.0,
+            first_match_s: 5.0,
+            residual_floor_m: 0.3,
+            position_floor_m: 0.5,
+            matching: MatchConfig::default(),
+        }
+    }
+}
+
+/// One matching attempt during a run (written to `prior_matches.csv`).
+#[derive(Debug, Clone, Serialize)]
+pub struct MatchEvent {
+    pub t: f64,
+    pub accepted: bool,
+    pub inliers: usize,
+    /// rotation and translation of `map_from_agent` of this attempt
+    pub angle_rad: f64,
+    pub tx: f64,
+    pub ty: f64,
+    /// adopted | replaced | kept | dropped | none
+    pub action: &'static str,
+    pub reason: String,
+}
+
+/// Periodic matching of the agent's map against a prior map (map frame).
+#[derive(Debug)]
+pub struct PriorTracker {
+    map: TransmitterMap,
+    settings: PriorSettings,
+    seed: u64,
+    next_t: Option<f64>,
+    current: Option<Isometry2<f64>>,
+    pub events: Vec<MatchEvent>,
+}
+
+impl PriorTracker {
+    pub fn new(map: TransmitterMap, settings: PriorSettings, seed: u64) -> Self {
+        PriorTracker {
+            map,
+            settings,
+            seed,
+            next_t: None,
+            current: None,
+            events: Vec::new(),
+        }
+    }
+
+    /// `map_from_agent` in use, if any.
+    pub fn current(&self) -> Option<&Isometry2<f64>> {
+        self.current.as_ref()
+    }
+
+    /// Called after each filter step at log time `t`: matches when an attempt is due.
+    pub fn after_step(&mut self, filter: &mut Filter, t: f64) -> Result<()> {
+        let next = *self
+            .next_t
+            .get_or_insert(t + self.settings.first_match_s.max(0.0));
+        if t < next || self.map.is_empty() {
+            return Ok(());
+        }
+        self.next_t = Some(t + self.settings.match_every_s.max(1e-3));
+        let user = export_map(filter)?;
+        let mut rng = ChaCha8Rng::seed_from_u64(self.seed ^ t.to_bits().rotate_left(17));
+        let m = match_maps(&user, &self.map, &self.settings.matching, &mut rng);
+        let action = if m.accepted {
+            let action = if self.current.is_some() {
+                "replaced"
+            } else {
+                "adopted"
+            };
+            self.current = Some(m.map_from_agent);
+            let points: Vec<Point2<f64>> = m
+                .correspondences
+                .iter()
+                .map(|&(u, _)| {
+                    let (mean, _) = user.transmitters()[u].moments();
+                    Point2::new(mean.x, mean.y)
+                })
+                .collect();
+            let unc = TransformUncertainty::from_fit(
+                &points,
+                &m.residuals_m,
+                self.settings.residual_floor_m,
+            );
+            filter.set_prior(Some(Prior::new(
+                &self.map,
+                m.map_from_agent.inverse(),
+                unc.as_ref(),
+                self.settings.position_floor_m,
+                filter.config().visibility_prior,
+            )));
+            action
+        } else if let Some(cur) = self.current {
+            let still = count_inliers(&user, &self.map, &cur, &self.settings.matching);
+            if still >= self.settings.matching.min_inliers {
+                "kept"
+            } else {
+                self.current = None;
+                filter.set_prior(None);
+                "dropped"
+            }
+        } else {
+            "none"
+        };
+        let a = m.map_from_agent;
+        self.events.push(MatchEvent {
+            t,
+            accepted: m.accepted,
+            inliers: m.inliers,
+            angle_rad: a.rotation.angle(),
+            tx: a.translation.x,
+            ty: a.translation.y,
+            action,
+            reason: m.reason.unwrap_or_default(),
+        });
+        Ok(())
+    }
+}
