@@ -61,6 +61,7 @@ async fn three_agents_share_a_map_through_a_real_server() {
     assert_eq!(r.status(), 201);
 
     let mut seen_versions = Vec::new();
+    let mut summaries: Vec<Value> = Vec::new();
     for seed in 1..=3u64 {
         let out = dir.path().join(format!("agent{seed}"));
         let status = Command::new(agent_binary())
@@ -105,7 +106,31 @@ async fn three_agents_share_a_map_through_a_real_server() {
             assert_eq!(upload["response"]["initialized"], true);
         }
         assert!(out.join("map.json").exists() && out.join("summary.json").exists());
+        summaries.push(
+            serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap())
+                .unwrap(),
+        );
     }
+    // the later agents matched the prior map while running and took transmitters over
+    for (k, s) in summaries.iter().enumerate().skip(1) {
+        assert!(
+            s["prior_matched_at_s"].as_f64().is_some(),
+            "agent {} never matched the prior: {s}",
+            k + 1
+        );
+        assert!(
+            s["prior_transmitters_used"].as_f64().unwrap() >= 3.0,
+            "agent {}: {s}",
+            k + 1
+        );
+    }
+    eprintln!(
+        "final MAE per agent: {:?}",
+        summaries
+            .iter()
+            .map(|s| s["mae_final_m"].as_f64().unwrap())
+            .collect::<Vec<_>>()
+    );
     // the first agent saw an empty map, the later ones the map the earlier ones left
     assert_eq!(seen_versions[0], 0);
     assert!(
@@ -122,6 +147,15 @@ async fn three_agents_share_a_map_through_a_real_server() {
         .unwrap();
     let rows = page["contributions"].as_array().unwrap();
     assert_eq!(rows.len(), 3, "every agent's upload is recorded");
+    let map: Value = c
+        .get(format!("{base}/v1/maps/indoor"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(map["version"], 3, "every upload merged: {rows:?}");
     // the same track walked again: a later agent's map must match the first one's and merge
     let merged = rows[1..]
         .iter()
