@@ -698,17 +698,10 @@ impl Particle {
             }
             Some(Cand::Prior(pidx)) => {
                 let prior = prior.expect("a prior candidate needs a prior");
-
                 let mut comps = prior.txs[pidx].comps.clone();
                 let _ = update_mixture(&mut comps, m, &self.pose, cfg, merge_now);
                 self.prior_used.push(pidx as u32);
-                self.txs.push(Arc::new(TxState {
-                    identity,
-                    comps,
-                    reliability_m: 0.0,
-                }));
-                self.bound.push((track, (self.txs.len() - 1) as u32));
-                updated.push(true);
+                self.start_transmitter(identity, comps, track, updated);
             }
             None => {
                 let (sd, sa) = m.sigmas();
@@ -716,15 +709,26 @@ impl Particle {
                 if cfg.association == Association::Off {
                     self.log_w += ln_p0;
                 }
-                self.txs.push(Arc::new(TxState {
-                    identity,
-                    comps,
-                    reliability_m: 0.0,
-                }));
-                self.bound.push((track, (self.txs.len() - 1) as u32));
-                updated.push(true);
+                self.start_transmitter(identity, comps, track, updated);
             }
         }
+    }
+
+    /// A new transmitter of this particle, bound to `track`.
+    fn start_transmitter(
+        &mut self,
+        identity: u32,
+        comps: Vec<Comp>,
+        track: u64,
+        updated: &mut Vec<bool>,
+    ) {
+        self.txs.push(Arc::new(TxState {
+            identity,
+            comps,
+            reliability_m: 0.0,
+        }));
+        self.bound.push((track, (self.txs.len() - 1) as u32));
+        updated.push(true);
     }
 }
 
