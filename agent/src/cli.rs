@@ -695,17 +695,8 @@ fn crowd_command(a: &CrowdArgs) -> Result<()> {
         a.scenario
     );
     anyhow::ensure!(a.parallel >= 1, "--parallel must be at least 1");
-    let mut cfg = crate::client::ClientConfig::new(&a.server);
-    cfg.token = a
-        .token_file
-        .as_deref()
-        .map(crate::remote::read_token)
-        .transpose()?;
-    let client = crate::client::MapClient::new(cfg)?;
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()?
-        .block_on(client.create_map(&a.map))
+    let (client, rt) = crate::remote::connect(&a.server, a.token_file.as_deref())?;
+    rt.block_on(client.create_map(&a.map))
         .with_context(|| format!("creating map {:?}", a.map))?;
     let users: Vec<User> = tracks[..a.users]
         .iter()

@@ -225,6 +225,11 @@ impl MapClient {
         if r.status() == reqwest::StatusCode::NOT_MODIFIED {
             return Ok(Fetched::NotModified);
         }
+        Self::map_document(r).await.map(Fetched::Fresh)
+    }
+
+    /// A successful map or version response parsed, any other status as its problem.
+    async fn map_document(r: reqwest::Response) -> Result<PriorMap, ClientError> {
         if !r.status().is_success() {
             return Err(Self::fail(r).await);
         }
@@ -232,7 +237,7 @@ impl MapClient {
             .text()
             .await
             .map_err(|e| ClientError::Protocol(e.to_string()))?;
-        parse_prior(&body).map(Fetched::Fresh)
+        parse_prior(&body)
     }
 
     /// `PUT /v1/maps/{map}`: creates the map (idempotent; an existing map is fine).
@@ -256,14 +261,7 @@ impl MapClient {
     pub async fn fetch_version(&self, map: &str, n: i64) -> Result<PriorMap, ClientError> {
         let url = self.url(&format!("/v1/maps/{map}/versions/{n}"));
         let r = self.send(3, || self.auth(self.http.get(&url))).await?;
-        if !r.status().is_success() {
-            return Err(Self::fail(r).await);
-        }
-        let body = r
-            .text()
-            .await
-            .map_err(|e| ClientError::Protocol(e.to_string()))?;
-        parse_prior(&body)
+        Self::map_document(r).await
     }
 
     /// `POST /v1/maps/{map}/contributions` with an Idempotency-Key derived from the body.

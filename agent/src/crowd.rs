@@ -150,6 +150,34 @@ fn collect(user: &User, dir: &Path, outcome: Result<()>, wall_s: f64) -> UserRes
     }
 }
 
+/// `f` over `items` on at most `workers` threads, taken in order; results in item order.
+pub fn in_order<T: Sync, R: Send>(
+    items: &[T],
+    workers: usize,
+    f: impl Fn(&T) -> R + Sync,
+) -> Vec<R> {
+    let next = AtomicUsize::new(0);
+    let results: Mutex<Vec<Option<R>>> = Mutex::new((0..items.len()).map(|_| None).collect());
+    std::thread::scope(|s| {
+        for _ in 0..workers.clamp(1, items.len().max(1)) {
+            s.spawn(|| {
+                loop {
+                    let i = next.fetch_add(1, Ordering::SeqCst);
+                    let Some(item) = items.get(i) else { break };
+                    let r = f(item);
+                    results.lock().expect("no panic holds the lock")[i] = Some(r);
+                }
+            });
+        }
+    });
+    results
+        .into_inner()
+        .expect("no panic holds the lock")
+        .into_iter()
+        .map(|r| r.expect("every item ran"))
+        .collect()
+}
+
 /// Runs the users in order, at most `spec.parallel` at once; results in user order.
 pub fn run_crowd(spec: &CrowdSpec, users: &[User]) -> Vec<UserResult> {
     let multi = if spec.progress {
@@ -159,52 +187,35 @@ pub fn run_crowd(spec: &CrowdSpec, users: &[User]) -> Vec<UserResult> {
     };
     let style = ProgressStyle::with_template("{spinner} {prefix:>8} [{elapsed_precise}] {msg}")
         .expect("static template");
-    let next = AtomicUsize::new(0);
-    let results: Mutex<Vec<Option<UserResult>>> = Mutex::new(vec![None; users.len()]);
-    let workers = spec.parallel.clamp(1, users.len().max(1));
-    std::thread::scope(|s| {
-        for _ in 0..workers {
-            s.spawn(|| {
-                loop {
-                    let i = next.fetch_add(1, Ordering::SeqCst);
-                    let Some(user) = users.get(i) else { break };
-                    let bar = multi.add(ProgressBar::new_spinner());
-                    bar.set_style(style.clone());
-                    bar.set_prefix(user.name.clone());
-                    bar.set_message("running");
-                    bar.enable_steady_tick(Duration::from_millis(200));
-                    let dir = spec.out.join(&user.name);
-                    let mut args = run_args(user, &dir, &spec.run_args);
-                    args.extend([
-                        "--server".into(),
-                        spec.server.clone(),
-                        "--map".into(),
-                        spec.map.clone(),
-                        "--contributor".into(),
-                        user.name.clone(),
-                    ]);
-                    if let Some(t) = &spec.token_file {
-                        args.extend(["--token-file".into(), t.display().to_string()]);
-                    }
-                    let start = Instant::now();
-                    let outcome = run_process(&spec.exe, &args, &dir);
-                    let r = collect(user, &dir, outcome, start.elapsed().as_secs_f64());
-                    bar.finish_with_message(match (&r.error, r.mae_final_m) {
-                        (Some(e), _) => format!("FAILED: {e}"),
-                        (None, Some(m)) => format!("final MAE {m:.2} m, {}", r.upload),
-                        (None, None) => r.upload.clone(),
-                    });
-                    results.lock().expect("no panics hold the lock")[i] = Some(r);
-                }
-            });
+    in_order(users, spec.parallel, |user| {
+        let bar = multi.add(ProgressBar::new_spinner());
+        bar.set_style(style.clone());
+        bar.set_prefix(user.name.clone());
+        bar.set_message("running");
+        bar.enable_steady_tick(Duration::from_millis(200));
+        let dir = spec.out.join(&user.name);
+        let mut args = run_args(user, &dir, &spec.run_args);
+        args.extend([
+            "--server".into(),
+            spec.server.clone(),
+            "--map".into(),
+            spec.map.clone(),
+            "--contributor".into(),
+            user.name.clone(),
+        ]);
+        if let Some(t) = &spec.token_file {
+            args.extend(["--token-file".into(), t.display().to_string()]);
         }
-    });
-    results
-        .into_inner()
-        .expect("no panics hold the lock")
-        .into_iter()
-        .map(|r| r.expect("every user ran"))
-        .collect()
+        let start = Instant::now();
+        let outcome = run_process(&spec.exe, &args, &dir);
+        let r = collect(user, &dir, outcome, start.elapsed().as_secs_f64());
+        bar.finish_with_message(match (&r.error, r.mae_final_m) {
+            (Some(e), _) => format!("FAILED: {e}"),
+            (None, Some(m)) => format!("final MAE {m:.2} m, {}", r.upload),
+            (None, None) => r.upload.clone(),
+        });
+        r
+    })
 }
 
 fn opt(v: Option<f64>) -> String {

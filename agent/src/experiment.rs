@@ -56,46 +56,50 @@ fn read_track(dir: &Path) -> Result<Series> {
         .collect()
 }
 
+/// The server an experiment talks to, with one client for its own requests.
 struct Server {
     url: String,
     token_file: Option<PathBuf>,
-    _local: Option<LocalServer>,
+    client: crate::client::MapClient,
+    rt: tokio::runtime::Runtime,
+    local: Option<LocalServer>,
 }
 
-fn server(spec: &ExperimentSpec) -> Result<Server> {
-    Ok(match &spec.server {
-        Some(url) => Server {
-            url: url.clone(),
-            token_file: spec.token_file.clone(),
-            _local: None,
-        },
-        None => {
-            let local = LocalServer::start()?;
-            println!(
-                "map server on {} (SQLite {})",
-                local.url,
-                local.database.display()
-            );
-            Server {
-                url: local.url.clone(),
-                token_file: Some(local.token_file.clone()),
-                _local: Some(local),
+impl Server {
+    fn open(spec: &ExperimentSpec) -> Result<Self> {
+        let (url, token_file, local) = match &spec.server {
+            Some(url) => (url.clone(), spec.token_file.clone(), None),
+            None => {
+                let local = LocalServer::start()?;
+                println!(
+                    "map server on {} (SQLite {})",
+                    local.url,
+                    local.database.display()
+                );
+                (
+                    local.url.clone(),
+                    Some(local.token_file.clone()),
+                    Some(local),
+                )
             }
-        }
-    })
-}
+        };
+        let (client, rt) = crate::remote::connect(&url, token_file.as_deref())?;
+        Ok(Server {
+            url,
+            token_file,
+            client,
+            rt,
+            local,
+        })
+    }
 
-fn client(s: &Server) -> Result<(crate::client::MapClient, tokio::runtime::Runtime)> {
-    let mut cfg = crate::client::ClientConfig::new(&s.url);
-    cfg.token = s
-        .token_file
-        .as_deref()
-        .map(crate::remote::read_token)
-        .transpose()?;
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()?;
-    Ok((crate::client::MapClient::new(cfg)?, rt))
+    /// Stops the loopback server, if this experiment started one.
+    fn close(self) -> Result<()> {
+        match self.local {
+            Some(l) => l.stop(),
+            None => Ok(()),
+        }
+    }
 }
 
 /// Builds a map from `users` on `map` and returns their results.
@@ -106,8 +110,7 @@ fn build_map(
     users: &[User],
     dir: &Path,
 ) -> Result<Vec<UserResult>> {
-    let (c, rt) = client(s)?;
-    rt.block_on(c.create_map(map))
+    s.rt.block_on(s.client.create_map(map))
         .with_context(|| format!("creating map {map:?}"))?;
     let cs = CrowdSpec {
         exe: spec.exe.clone(),
@@ -130,10 +133,9 @@ fn save_version(s: &Server, map: &str, v: i64, path: &Path) -> Result<Option<Pat
     if v == 0 {
         return Ok(None);
     }
-    let (c, rt) = client(s)?;
-    let p = rt
-        .block_on(c.fetch_version(map, v))
-        .with_context(|| format!("fetching {map:?} version {v}"))?;
+    let p =
+        s.rt.block_on(s.client.fetch_version(map, v))
+            .with_context(|| format!("fetching {map:?} version {v}"))?;
     std::fs::write(path, &p.body)?;
     Ok(Some(path.to_path_buf()))
 }
@@ -145,33 +147,14 @@ fn run_references(
     jobs: &[(String, Option<PathBuf>)],
     dir: &Path,
 ) -> Vec<Result<Series>> {
-    let next = std::sync::atomic::AtomicUsize::new(0);
-    let out: std::sync::Mutex<Vec<Option<Result<Series>>>> =
-        std::sync::Mutex::new((0..jobs.len()).map(|_| None).collect());
-    std::thread::scope(|sc| {
-        for _ in 0..spec.parallel.clamp(1, jobs.len().max(1)) {
-            sc.spawn(|| {
-                loop {
-                    let i = next.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
-                    let Some((label, prior)) = jobs.get(i) else {
-                        break;
-                    };
-                    let d = dir.join(format!("reference-{label}"));
-                    let mut args = crowd::run_args(reference, &d, &spec.reference_args);
-                    if let Some(p) = prior {
-                        args.extend(["--prior".into(), p.display().to_string()]);
-                    }
-                    let r = crowd::run_process(&spec.exe, &args, &d).and_then(|_| read_track(&d));
-                    out.lock().expect("no panic holds the lock")[i] = Some(r);
-                }
-            });
+    crowd::in_order(jobs, spec.parallel, |(label, prior)| {
+        let d = dir.join(format!("reference-{label}"));
+        let mut args = crowd::run_args(reference, &d, &spec.reference_args);
+        if let Some(p) = prior {
+            args.extend(["--prior".into(), p.display().to_string()]);
         }
-    });
-    out.into_inner()
-        .expect("no panic holds the lock")
-        .into_iter()
-        .map(|r| r.expect("every job ran"))
-        .collect()
+        crowd::run_process(&spec.exe, &args, &d).and_then(|_| read_track(&d))
+    })
 }
 
 fn label_of(c: usize) -> String {
@@ -217,7 +200,7 @@ pub fn cooperative_scenario(
         "{max_c} contributors asked, the scenario has {} user tracks",
         crowd_tracks.len()
     );
-    let s = server(spec)?;
+    let s = Server::open(spec)?;
     let mut per_c: Vec<Vec<Series>> = vec![Vec::new(); contributors.len()];
     for run in 0..spec.runs {
         let seed = spec.first_seed + run;
@@ -279,6 +262,7 @@ pub fn cooperative_scenario(
             per_c[k].push(series);
         }
     }
+    s.close()?;
     let all: Vec<Curves> = contributors
         .iter()
         .zip(per_c)
@@ -334,7 +318,7 @@ pub fn cooperative_mrclam(
     spec: &ExperimentSpec,
     logs: &[(u32, PathBuf)],
 ) -> Result<Vec<(u32, Curves, Curves)>> {
-    let s = server(spec)?;
+    let s = Server::open(spec)?;
     let mut out = Vec::new();
     for (reference_robot, reference_log) in logs {
         let mut alone = Vec::new();
@@ -388,6 +372,7 @@ pub fn cooperative_mrclam(
         );
         out.push((*reference_robot, a, w));
     }
+    s.close()?;
     let all: Vec<Curves> = out
         .iter()
         .flat_map(|(_, a, w)| [a.clone(), w.clone()])

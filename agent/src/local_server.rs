@@ -3,7 +3,7 @@
 //! and a token file in a temporary directory. Agents talk to it over HTTP like to any server.
 
 use anyhow::{Context, Result};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 #[derive(Debug)]
 pub struct LocalServer {
@@ -77,10 +77,6 @@ impl LocalServer {
             thread: Some(thread),
             _dir: dir,
         })
-    }
-
-    pub fn token_file(&self) -> &Path {
-        &self.token_file
     }
 
     /// Stops accepting, finishes in-flight requests, closes the database.

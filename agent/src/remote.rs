@@ -30,18 +30,28 @@ pub fn read_token(path: &Path) -> Result<String> {
         .with_context(|| format!("no token in {}", path.display()))
 }
 
+/// A client of the server at `base` (token from `token_file`, if any) and a runtime to
+/// drive it from synchronous code.
+pub fn connect(
+    base: &str,
+    token_file: Option<&Path>,
+) -> Result<(MapClient, tokio::runtime::Runtime)> {
+    let mut cfg = ClientConfig::new(base);
+    cfg.token = token_file.map(read_token).transpose()?;
+    let client = MapClient::new(cfg)?;
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    Ok((client, rt))
+}
+
 impl Remote {
     pub fn from_args(a: &ServerArgs) -> Result<Option<Self>> {
         let Some(base) = &a.server else {
             return Ok(None);
         };
         let map = a.map.clone().context("--server needs --map")?;
-        let mut cfg = ClientConfig::new(base);
-        cfg.token = a.token_file.as_deref().map(read_token).transpose()?;
-        let client = MapClient::new(cfg)?;
-        let rt = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()?;
+        let (client, rt) = connect(base, a.token_file.as_deref())?;
         Ok(Some(Remote {
             client,
             map,

@@ -29,8 +29,6 @@ pub struct PriorTx {
     pub id: String,
     pub comps: Vec<Comp>,
     pub existence: f64,
-    /// position std √tr(P_xy) of the mixture (m)
-    pub spread_m: f64,
     visibility: BTreeMap<HexCell, Beta>,
 }
 
@@ -122,12 +120,10 @@ impl Prior {
                 if comps.len() != t.components.len() {
                     return None;
                 }
-                let (_, cov) = t.moments();
                 Some(PriorTx {
                     id: t.id.clone(),
                     comps,
                     existence: t.existence,
-                    spread_m: (cov[(0, 0)] + cov[(1, 1)]).max(0.0).sqrt(),
                     visibility: t.visibility.clone(),
                 })
             })

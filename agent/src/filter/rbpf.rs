@@ -642,7 +642,6 @@ impl Particle {
             if let Some(prior) = prior {
                 for (idx, ptx) in prior.txs.iter().enumerate() {
                     if ptx.existence < cfg.prior_min_existence
-                        || ptx.spread_m > cfg.association_max_spread_m
                         || self.prior_used.contains(&(idx as u32))
                     {
                         continue;
