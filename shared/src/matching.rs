@@ -3,27 +3,28 @@
 //!
 //! RANSAC over minimal samples of three transmitters. Beyond the paper's random draw from
 //! both maps, the prior triple is found from the user triple by pairwise-distance
-//! consistency (eq. 17 as a search: every prior triple whose three distances agree with the
-//! user triple's within `distance_tolerance_m`, both orderings of the first pair), and pairs
-//! are gated by the frame-invariant clock offset b. Each consistent triple gives a
-//! least-squares rigid transform (2D Kabsch without scale: a proper rotation, so a mirror
-//! image never fits); local optimization re-collects every pair closer than
-//! `inlier_threshold_m` and re-estimates until the set is stable. Hypotheses are scored by
-//! eq. 18: the location term p(H) (MSAC-style truncated quadratic over inliers) plus the
-//! visibility term log p(M|H) — the user's transformed visibility counts scored under the
-//! prior's Beta distributions (Beta-binomial), as a log-likelihood ratio against an
-//! uninformative Beta(1, 1). The number of user triples drawn adapts to the best inlier
-//! ratio and `confidence`.
+//! consistency (eq. 17 as a search): prior pairs whose distance agrees with the user pair's
+//! within `distance_tolerance_m`, nearest first, both orderings; the third member is looked
+//! up where the first two pairs put it. Pairs are gated by the frame-invariant clock offset
+//! b. Each consistent triple gives a least-squares rigid transform (2D Kabsch without scale:
+//! a proper rotation, so a mirror image never fits). LO-RANSAC: a hypothesis that does at
+//! least as well as the best so far on a single pass is locally optimized — every pair
+//! inside the χ² gate re-collected one-to-one and the transform re-estimated until the set is
+//! stable. Hypotheses are scored by eq. 18: the location term p(H) (MSAC-style truncated
+//! quadratic over inliers) plus the visibility term log p(M|H) — the user's transformed
+//! visibility counts scored under the prior's Beta distributions (Beta-binomial), as a
+//! log-likelihood ratio against an uninformative Beta(1, 1). The number of user triples drawn
+//! adapts to the best inlier ratio and `confidence`. The chosen hypothesis is accepted by an
+//! a-contrario test on its residuals (`false_alarms`, in the manner of ORSA).
 //!
-//! Complexity per drawn triple: O(P·k) for the prior pair index lookups (k consistent pairs)
-//! plus O((U + P)·iterations) per hypothesis for local optimization, with a hash grid of
-//! prior means for nearest-neighbour queries.
+//! Complexity per drawn triple: O(log P + k) for the consistent prior pairs (k of them, at
+//! most `max_hypotheses_per_sample` tried), O(U) for each single-pass check with a uniform
+//! grid of prior means, and O(U·iterations) for each local optimization.
 
 use crate::hexgrid::HexGrid;
 use crate::map::{Transmitter, TransmitterMap, transform_visibility};
 use nalgebra::{Isometry2, Point2, Vector2};
 use rand::{Rng, RngExt};
-use std::collections::HashMap;
 
 /// Matching settings; defaults in `Default`.
 #[derive(Debug, Clone, PartialEq)]
@@ -38,8 +39,8 @@ pub struct MatchConfig {
     pub inlier_gate_chi2: f64,
     /// and in any case no farther than this (m); default 3.0
     pub inlier_threshold_m: f64,
-    /// accept only when the number of false alarms — hypotheses tried × P(at least that many
-    /// inliers by chance, Poisson with the density of the prior map) — is below this; default 1e-3
+    /// accept only when the expected number of false alarms — hypotheses tried × the chance
+    /// that unrelated maps fit at least as well (see `false_alarms`) — is below this; default 1e-2
     pub max_false_alarms: f64,
     /// pairwise distances of a triple must agree within this (m); default 1.5
     pub distance_tolerance_m: f64,
@@ -79,14 +80,14 @@ impl Default for MatchConfig {
             min_existence: 0.5,
             inlier_gate_chi2: 9.21,
             inlier_threshold_m: 3.0,
-            max_false_alarms: 1e-3,
+            max_false_alarms: 1e-2,
             distance_tolerance_m: 1.5,
             b_gate_sigma: 3.0,
             b_gate_floor_m: 0.5,
             min_inliers: 5,
             confidence: 0.999,
-            max_iterations: 500,
-            max_hypotheses_per_sample: 16,
+            max_iterations: 2000,
+            max_hypotheses_per_sample: 64,
             min_inlier_spread_m: 1.0,
             use_visibility: true,
             visibility_weight: 1.0,
@@ -189,37 +190,102 @@ pub fn fit_rigid(from: &[Point2<f64>], to: &[Point2<f64>]) -> Option<Isometry2<f
     Some(Isometry2::new(t, angle))
 }
 
-/// Uniform hash grid over prior candidates for radius queries.
+/// Uniform grid over the prior candidates' bounding box for radius queries, stored as
+/// compressed rows (cell offsets into one index array). The cell is at least the query
+/// radius and grows when the box would need more than a few cells per candidate.
 struct Grid {
     cell: f64,
-    cells: HashMap<(i64, i64), Vec<usize>>,
+    x0: f64,
+    y0: f64,
+    nx: usize,
+    ny: usize,
+    /// `items[start[c]..start[c + 1]]` are the candidates in cell c, in index order
+    start: Vec<u32>,
+    items: Vec<u32>,
 }
 
 impl Grid {
     fn new(cands: &[Cand], cell: f64) -> Self {
-        let mut cells: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
-        for (i, c) in cands.iter().enumerate() {
-            cells.entry(Self::key(&c.p, cell)).or_default().push(i);
+        let (mut x0, mut y0, mut x1, mut y1) = (
+            f64::INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NEG_INFINITY,
+        );
+        for c in cands {
+            x0 = x0.min(c.p.x);
+            y0 = y0.min(c.p.y);
+            x1 = x1.max(c.p.x);
+            y1 = y1.max(c.p.y);
         }
-        Grid { cell, cells }
+        if cands.is_empty() {
+            (x0, y0, x1, y1) = (0.0, 0.0, 0.0, 0.0);
+        }
+        let max_cells = 4 * cands.len() + 1024;
+        let mut cell = cell;
+        let dims = |cell: f64| {
+            (
+                ((x1 - x0) / cell).floor() as usize + 1,
+                ((y1 - y0) / cell).floor() as usize + 1,
+            )
+        };
+        while {
+            let (nx, ny) = dims(cell);
+            nx.saturating_mul(ny) > max_cells
+        } {
+            cell *= 2.0;
+        }
+        let (nx, ny) = dims(cell);
+        let key = |p: &Point2<f64>| {
+            let kx = (((p.x - x0) / cell).floor() as usize).min(nx - 1);
+            let ky = (((p.y - y0) / cell).floor() as usize).min(ny - 1);
+            ky * nx + kx
+        };
+        let mut start = vec![0u32; nx * ny + 1];
+        for c in cands {
+            start[key(&c.p) + 1] += 1;
+        }
+        for k in 1..start.len() {
+            start[k] += start[k - 1];
+        }
+        let mut fill = start.clone();
+        let mut items = vec![0u32; cands.len()];
+        for (i, c) in cands.iter().enumerate() {
+            let k = key(&c.p);
+            items[fill[k] as usize] = i as u32;
+            fill[k] += 1;
+        }
+        Grid {
+            cell,
+            x0,
+            y0,
+            nx,
+            ny,
+            start,
+            items,
+        }
     }
 
-    fn key(p: &Point2<f64>, cell: f64) -> (i64, i64) {
-        ((p.x / cell).floor() as i64, (p.y / cell).floor() as i64)
-    }
-
-    /// Indices within `r` (≤ cell) of `p`, in index order.
+    /// Indices of the candidates within `r` (≤ the cell size) of `p`, in a fixed order.
     fn near(&self, p: &Point2<f64>, r: f64, cands: &[Cand], out: &mut Vec<usize>) {
         out.clear();
-        let (kx, ky) = Self::key(p, self.cell);
-        for dx in -1..=1 {
-            for dy in -1..=1 {
-                if let Some(v) = self.cells.get(&(kx + dx, ky + dy)) {
-                    out.extend(v.iter().copied().filter(|&i| (cands[i].p - p).norm() <= r));
+        let fx = ((p.x - self.x0) / self.cell).floor();
+        let fy = ((p.y - self.y0) / self.cell).floor();
+        if !(fx >= -1.0 && fy >= -1.0 && fx <= self.nx as f64 && fy <= self.ny as f64) {
+            return; // farther than one cell from the box (or not finite)
+        }
+        let (kx, ky) = (fx as i64, fy as i64);
+        let r2 = r * r;
+        for y in (ky - 1).max(0)..=(ky + 1).min(self.ny as i64 - 1) {
+            for x in (kx - 1).max(0)..=(kx + 1).min(self.nx as i64 - 1) {
+                let c = y as usize * self.nx + x as usize;
+                for &i in &self.items[self.start[c] as usize..self.start[c + 1] as usize] {
+                    if (cands[i as usize].p - p).norm_squared() <= r2 {
+                        out.push(i as usize);
+                    }
                 }
             }
         }
-        out.sort_unstable();
     }
 }
 
@@ -287,6 +353,8 @@ struct Hypothesis {
     iso: Isometry2<f64>,
     pairs: Vec<(usize, usize)>, // candidate indices (user, prior)
     residuals: Vec<f64>,
+    /// per pair: the area of its uncertainty ellipse through the residual, π·d²·√det S (m²)
+    ellipse_m2: Vec<f64>,
     loc_score: f64,
 }
 
@@ -330,6 +398,39 @@ fn inlier_pairs(
     }
     pairs.sort_unstable();
     pairs
+}
+
+/// Pre-screen of a hypothesis: how many user candidates have some gated, b-compatible prior
+/// candidate under `iso` (an upper bound of the one-to-one inlier count), or None as soon as
+/// fewer than `need` remain possible.
+fn quick_count(
+    iso: &Isometry2<f64>,
+    u: &[Cand],
+    p: &[Cand],
+    grid: &Grid,
+    cfg: &MatchConfig,
+    need: usize,
+) -> Option<usize> {
+    let mut near = Vec::new();
+    let rot = iso.rotation.to_rotation_matrix().into_inner();
+    let mut count = 0;
+    for (i, uc) in u.iter().enumerate() {
+        if count + (u.len() - i) < need {
+            return None;
+        }
+        let q = iso * uc.p;
+        grid.near(&q, cfg.inlier_threshold_m, p, &mut near);
+        let hit = near.iter().any(|&j| {
+            b_compatible(uc, &p[j], cfg) && {
+                let r = p[j].p - q;
+                (rot * uc.cov * rot.transpose() + p[j].cov)
+                    .cholesky()
+                    .is_some_and(|c| r.dot(&c.solve(&r)) <= cfg.inlier_gate_chi2)
+            }
+        });
+        count += usize::from(hit);
+    }
+    (count >= need).then_some(count)
 }
 
 /// How many candidate transmitters of `user` agree with `prior` under a given transform
@@ -377,23 +478,23 @@ fn local_optimize(
         .iter()
         .map(|&(i, j)| (iso * u[i].p - p[j].p).norm())
         .collect();
-    // MSAC-style: each inlier scores 1 − d²/gate (d² its Mahalanobis distance)
-    let loc_score = last
-        .iter()
-        .map(|&(i, j)| {
-            let r = p[j].p - iso * u[i].p;
-            let s = rot * u[i].cov * rot.transpose() + p[j].cov;
-            let d2 = s
-                .cholesky()
-                .map(|c| r.dot(&c.solve(&r)))
-                .unwrap_or(f64::INFINITY);
-            1.0 - (d2 / cfg.inlier_gate_chi2).min(1.0)
-        })
-        .sum();
+    let (mut loc_score, mut ellipse_m2) = (0.0, Vec::with_capacity(last.len()));
+    for &(i, j) in &last {
+        let r = p[j].p - iso * u[i].p;
+        let s = rot * u[i].cov * rot.transpose() + p[j].cov;
+        let d2 = s
+            .cholesky()
+            .map(|c| r.dot(&c.solve(&r)))
+            .unwrap_or(f64::INFINITY);
+        // MSAC-style: each inlier scores 1 − d²/gate (d² its Mahalanobis distance)
+        loc_score += 1.0 - (d2 / cfg.inlier_gate_chi2).min(1.0);
+        ellipse_m2.push(std::f64::consts::PI * d2 * s.determinant().max(0.0).sqrt());
+    }
     Some(Hypothesis {
         iso,
         pairs: last,
         residuals,
+        ellipse_m2,
         loc_score,
     })
 }
@@ -431,6 +532,8 @@ pub fn match_maps(
     let tol = cfg.distance_tolerance_m;
 
     let mut best: Option<(f64, f64, Hypothesis)> = None;
+    let mut best_count = 0usize;
+    let mut third = Vec::new();
     let mut tests = 0usize;
     let mut needed = cfg.max_iterations;
     let mut it = 0;
@@ -455,17 +558,41 @@ pub fn match_maps(
         if dab < tol || dac < tol || dbc < tol {
             continue; // degenerate triple
         }
-        let lo = pair_index.partition_point(|x| x.0 < dab - tol);
+        // prior pairs whose distance agrees with dab, nearest first (outwards from dab)
+        let mid = pair_index.partition_point(|x| x.0 < dab);
+        let (mut down, mut up) = (mid, mid);
         let mut tried = 0;
-        for &(d, i, j) in &pair_index[lo..] {
-            if d > dab + tol || tried >= cfg.max_hypotheses_per_sample {
-                break;
-            }
+        while tried < cfg.max_hypotheses_per_sample {
+            let below = (down > 0 && pair_index[down - 1].0 >= dab - tol)
+                .then(|| dab - pair_index[down - 1].0);
+            let above = (up < pair_index.len() && pair_index[up].0 <= dab + tol)
+                .then(|| pair_index[up].0 - dab);
+            let (_, i, j) = match (below, above) {
+                (None, None) => break,
+                (Some(x), Some(y)) if x <= y => {
+                    down -= 1;
+                    pair_index[down]
+                }
+                (Some(_), None) => {
+                    down -= 1;
+                    pair_index[down]
+                }
+                _ => {
+                    up += 1;
+                    pair_index[up - 1]
+                }
+            };
             for (pa, pb) in [(i, j), (j, i)] {
                 if !b_compatible(ua, &p[pa], cfg) || !b_compatible(ub, &p[pb], cfg) {
                     continue;
                 }
-                for (k, pc) in p.iter().enumerate() {
+                // the third member must lie where the first two pairs put it
+                let Some(two) = fit_rigid(&[ua.p, ub.p], &[p[pa].p, p[pb].p]) else {
+                    continue;
+                };
+                grid.near(&(two * uc.p), tol, &p, &mut third);
+                for &k in &third {
+                    let pc = &p[k];
                     if k == pa || k == pb || !b_compatible(uc, pc, cfg) {
                         continue;
                     }
@@ -487,6 +614,13 @@ pub fn match_maps(
                     {
                         continue;
                     }
+                    // LO-RANSAC: local optimization only for hypotheses that do at least as
+                    // well as the best so far on a single pass
+                    let Some(count) = quick_count(&iso, &u, &p, &grid, cfg, best_count.max(3))
+                    else {
+                        continue;
+                    };
+                    best_count = count;
                     let Some(h) = local_optimize(iso, &u, &p, &grid, cfg) else {
                         continue;
                     };
@@ -527,7 +661,7 @@ pub fn match_maps(
     let Some((score, vis, h)) = best else {
         return MatchResult::rejected("no consistent transmitter triple found".into(), it);
     };
-    let nfa = false_alarms(&u, &p, cfg, tests.max(1), h.pairs.len());
+    let nfa = false_alarms(&h, &u, &p, cfg, tests.max(1));
     let spread = minor_axis_std(&h.pairs.iter().map(|&(_, j)| p[j].p).collect::<Vec<_>>());
     let mut result = MatchResult {
         accepted: h.pairs.len() >= cfg.min_inliers
@@ -579,11 +713,22 @@ fn minor_axis_std(pts: &[Point2<f64>]) -> f64 {
     cov.symmetric_eigenvalues().min().max(0.0).sqrt()
 }
 
-/// Expected number of false alarms of a hypothesis with `k` inliers (a-contrario test):
-/// `tests · P(X ≥ k)`, X ~ Poisson(λ), λ the expected chance coincidences of the user
-/// candidates with prior candidates spread uniformly over the prior's bounding box, each
-/// coincidence region the χ² gate ellipse of the mean covariances.
-fn false_alarms(u: &[Cand], p: &[Cand], cfg: &MatchConfig, tests: usize, k: usize) -> f64 {
+/// Expected number of false alarms of a hypothesis (a-contrario test in the manner of ORSA,
+/// Moisan & Stival 2004): how many of the `tests` hypotheses tried would, in maps without a
+/// common part, fit at least as well by chance.
+///
+/// Null model: the prior candidates are spread uniformly over their bounding box (density ρ)
+/// and independent of the user's. A user transmitter meets a chance partner at least as close
+/// as inlier i (inside the ellipse of area e_i through its residual) and b-compatible with it
+/// (fraction f_i of the prior candidates) with probability q_i = 1 − exp(−ρ·e_i·f_i). Sorting
+/// the inliers by q, the three best are taken as the minimal sample: two pairs fix a rigid
+/// transform and carry no evidence; the third was chosen among the prior transmitters whose
+/// distances to the first two agree within `distance_tolerance_m`, so it counts with
+/// q₃ = e₃ / (2·tol)². For j of the remaining inliers with q ≤ q_(3+j), the chance is the
+/// Binomial tail P(X ≥ j), X ~ Bin(n − 3, q_(3+j)), n the user candidates the hypothesis
+/// puts inside the prior's box. The false-alarm count is tests · (n − 3) · q₃ · min_j of
+/// that tail (the factor n − 3 pays for choosing j).
+fn false_alarms(h: &Hypothesis, u: &[Cand], p: &[Cand], cfg: &MatchConfig, tests: usize) -> f64 {
     let (mut x0, mut x1, mut y0, mut y1) = (
         f64::INFINITY,
         f64::NEG_INFINITY,
@@ -597,29 +742,60 @@ fn false_alarms(u: &[Cand], p: &[Cand], cfg: &MatchConfig, tests: usize, k: usiz
         y1 = y1.max(c.p.y);
     }
     let margin = cfg.inlier_threshold_m;
-    let area = ((x1 - x0) + 2.0 * margin) * ((y1 - y0) + 2.0 * margin);
-    let mean_cov = (u.iter().map(|c| c.cov).sum::<nalgebra::Matrix2<f64>>() / u.len() as f64)
-        + (p.iter().map(|c| c.cov).sum::<nalgebra::Matrix2<f64>>() / p.len() as f64);
-    let ellipse =
-        (std::f64::consts::PI * cfg.inlier_gate_chi2 * mean_cov.determinant().max(0.0).sqrt())
-            .min(std::f64::consts::PI * cfg.inlier_threshold_m.powi(2));
-    // each user transmitter meets a chance prior transmitter inside its gate with probability
-    // q = 1 − exp(−n_p·ellipse/area) (Poisson points); inliers are one-to-one, so the number
-    // of chance inliers is Binomial(n_u, q) — a Poisson tail with λ = n_u·n_p·ellipse/area
-    // never saturates and over-states the chance of many inliers in dense maps
-    let n = u.len().min(p.len());
-    let q = (1.0 - (-(p.len() as f64) * ellipse / area).exp()).clamp(1e-300, 1.0 - 1e-16);
+    let (x0, x1, y0, y1) = (x0 - margin, x1 + margin, y0 - margin, y1 + margin);
+    let density = p.len() as f64 / ((x1 - x0) * (y1 - y0));
+    let inside = u
+        .iter()
+        .map(|c| h.iso * c.p)
+        .filter(|q| q.x >= x0 && q.x <= x1 && q.y >= y0 && q.y <= y1)
+        .count();
+    let k = h.pairs.len();
+    if k <= 3 {
+        return f64::INFINITY;
+    }
+    let n = inside.max(k) - 3;
+    let mut q: Vec<(f64, f64)> = h
+        .pairs
+        .iter()
+        .zip(&h.ellipse_m2)
+        .map(|(&(i, _), &e)| {
+            let f =
+                p.iter().filter(|c| b_compatible(&u[i], c, cfg)).count() as f64 / p.len() as f64;
+            ((1.0 - (-density * e * f).exp()).clamp(1e-300, 1.0), e)
+        })
+        .collect();
+    q.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // The third sample member was chosen among the prior transmitters whose distances to the
+    // first two agree within the tolerance — a region of at least (2·tol)² — so only its fine
+    // residual within that region is evidence.
+    let ln_third = (q[2].1 / (4.0 * cfg.distance_tolerance_m.powi(2)))
+        .clamp(1e-300, 1.0)
+        .ln();
+    let best_tail = (1..=k - 3)
+        .map(|j| ln_binomial_tail(n, j, q[2 + j].0))
+        .fold(0.0, f64::min);
+    if std::env::var_os("ECHOMAP_NFA_DEBUG").is_some() {
+        eprintln!(
+            "nfa: tests {tests} n {n} k {k} density {density:.4} q {q:?} best {best_tail:.2}"
+        );
+    }
+    tests as f64 * n as f64 * (ln_third + best_tail).exp()
+}
+
+/// ln P(X ≥ k) for X ~ Binomial(n, q), summed in log space.
+fn ln_binomial_tail(n: usize, k: usize, q: f64) -> f64 {
     if k > n {
+        return f64::NEG_INFINITY;
+    }
+    if q >= 1.0 {
         return 0.0;
     }
-    // ln P(X ≥ k) = ln Σ_{i=k}^{n} C(n, i) q^i (1−q)^(n−i), summed in log space
     let ln_c = |i: usize| {
         ln_gamma(n as f64 + 1.0) - ln_gamma(i as f64 + 1.0) - ln_gamma((n - i) as f64 + 1.0)
     };
     let ln_terms: Vec<f64> = (k..=n)
-        .map(|i| ln_c(i) + i as f64 * q.ln() + (n - i) as f64 * (1.0 - q).ln())
+        .map(|i| ln_c(i) + i as f64 * q.ln() + (n - i) as f64 * (-q).ln_1p())
         .collect();
     let max = ln_terms.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
-    let ln_tail = max + ln_terms.iter().map(|t| (t - max).exp()).sum::<f64>().ln();
-    (tests as f64).ln().exp() * ln_tail.exp()
+    max + ln_terms.iter().map(|t| (t - max).exp()).sum::<f64>().ln()
 }
