@@ -6,6 +6,7 @@ pub mod api;
 pub mod app;
 pub mod auth;
 pub mod config;
+pub mod delta;
 pub mod error;
 pub mod merge;
 pub mod metrics;

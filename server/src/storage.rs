@@ -7,6 +7,7 @@
 //! committing (optimistic concurrency), so several server replicas on one database cannot lose
 //! updates; inside one process merges of a map are additionally serialized by a lock.
 
+use crate::delta::Encoding;
 use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
 use sqlx::{Row, SqlitePool};
 use std::str::FromStr;
@@ -40,7 +41,10 @@ pub struct VersionRow {
     pub parent: Option<i64>,
     pub kind: String,
     pub contribution_id: i64,
+    /// the full `echomap.map.v1` document (deltas are resolved when read)
     pub body: String,
+    /// how the body is stored: `full` or `delta`
+    pub encoding: String,
     pub transmitters: i64,
     pub created_ms: i64,
 }
@@ -116,7 +120,9 @@ impl std::fmt::Debug for PendingCommit {
 /// A merged map to commit as the next version.
 #[derive(Debug, Clone)]
 pub struct NewVersion {
+    /// the `echomap.map.v1` document, or a delta against the previous version
     pub body: String,
+    pub encoding: Encoding,
     pub transmitters: i64,
 }
 
@@ -162,6 +168,10 @@ async fn expect_version(
 }
 
 /// Appends version `number` (its parent is `number − 1`, none for the first).
+fn corrupt(map_id: i64, number: i64, why: &str) -> sqlx::Error {
+    sqlx::Error::Protocol(format!("version {number} of map {map_id}: {why}"))
+}
+
 async fn insert_version(
     tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
     map_id: i64,
@@ -172,8 +182,8 @@ async fn insert_version(
     created_ms: i64,
 ) -> Result<(), sqlx::Error> {
     sqlx::query(
-        "INSERT INTO versions (map_id, number, parent, kind, contribution_id, body, transmitters, created_ms)
-         VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
+        "INSERT INTO versions (map_id, number, parent, kind, contribution_id, body, encoding, transmitters, created_ms)
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
     )
     .bind(map_id)
     .bind(number)
@@ -181,6 +191,7 @@ async fn insert_version(
     .bind(kind)
     .bind(contribution_id)
     .bind(&v.body)
+    .bind(v.encoding.as_str())
     .bind(v.transmitters)
     .bind(created_ms)
     .execute(&mut **tx)
@@ -322,19 +333,50 @@ impl Storage {
         .await
     }
 
+    /// Version `number` with its full document (a stored delta is resolved from the nearest
+    /// earlier full body, in one read transaction).
     pub async fn version(
         &self,
         map_id: i64,
         number: i64,
     ) -> Result<Option<VersionRow>, sqlx::Error> {
-        sqlx::query_as(
-            "SELECT number, parent, kind, contribution_id, body, transmitters, created_ms
+        let mut tx = self.reader.begin().await?;
+        let row: Option<VersionRow> = sqlx::query_as(
+            "SELECT number, parent, kind, contribution_id, body, encoding, transmitters, created_ms
              FROM versions WHERE map_id = $1 AND number = $2",
         )
         .bind(map_id)
         .bind(number)
-        .fetch_optional(&self.reader)
-        .await
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some(mut row) = row else {
+            return Ok(None);
+        };
+        if row.encoding == Encoding::Delta.as_str() {
+            let chain: Vec<(String, String)> = sqlx::query_as(
+                "SELECT encoding, body FROM versions
+                 WHERE map_id = $1 AND number <= $2 AND number >= (
+                     SELECT MAX(number) FROM versions
+                     WHERE map_id = $1 AND number < $2 AND encoding = 'full')
+                 ORDER BY number",
+            )
+            .bind(map_id)
+            .bind(number)
+            .fetch_all(&mut *tx)
+            .await?;
+            let mut steps = chain.into_iter();
+            let mut doc = match steps.next() {
+                Some((e, body)) if e == Encoding::Full.as_str() => body,
+                _ => return Err(corrupt(map_id, number, "no full body before the delta")),
+            };
+            for (_, delta) in steps {
+                doc = crate::delta::apply(&doc, &delta).map_err(|e| corrupt(map_id, number, &e))?;
+            }
+            row.body = doc;
+            row.encoding = Encoding::Full.as_str().into();
+        }
+        tx.commit().await?;
+        Ok(Some(row))
     }
 
     /// Contributions merged into version `n`: merges up to it minus rollbacks up to it.

@@ -6,6 +6,7 @@
 //! merge in parallel.
 
 use crate::api::ContributionAccepted;
+use crate::delta::{self, Encoding};
 use crate::error::{ApiError, ApiResult, problem_body};
 use crate::merge::{Outcome, correspondences, integrate, seed_of};
 use crate::state::{AppState, MapRef, SharedState, render_json};
@@ -149,12 +150,24 @@ async fn process(app: &AppState, row: &MapRef, mut batch: Vec<Job>) {
             reply(job, Err(err));
         }
         let n_entries = entries.len();
-        // the newest version's stored document, spliced into the cached GET body
-        let last_doc = entries
-            .iter()
-            .rev()
-            .find_map(|e| e.version.as_ref())
-            .map(|v| v.body.clone());
+        // the newest version is stored whole: it is the map's head, and it bounds every
+        // delta chain by one batch; its document is also spliced into the cached GET body
+        let mut last_doc = None;
+        if let (Some(v), Some(map)) = (
+            entries.iter_mut().rev().find_map(|e| e.version.as_mut()),
+            &last_map,
+        ) {
+            if v.encoding == Encoding::Delta {
+                match serde_json::to_string(map.as_ref()) {
+                    Ok(b) => {
+                        v.body = b;
+                        v.encoding = Encoding::Full;
+                    }
+                    Err(e) => return fail_all(committed, "serializing the merged map", e),
+                }
+            }
+            last_doc = Some(v.body.clone());
+        }
         metrics::histogram!("echomap_commit_batch_size").record(n_entries as f64);
         match app.storage.commit_batch(row.id, cur.version, entries).await {
             Ok(responses) => {
@@ -312,8 +325,17 @@ fn entry(
         Some(serde_json::to_string(&a.map_from_agent).map_err(|e| ApiError::Internal(e.into()))?);
     c.merged = Some(a.merged as i64);
     c.added = Some(a.added as i64);
+    // a delta against the previous version; the batch's last version is stored whole (process)
+    let (body, encoding) = match prior.and_then(|p| delta::encode(p, &a.map)) {
+        Some(d) => (d, Encoding::Delta),
+        None => (
+            serde_json::to_string(&a.map).map_err(|e| ApiError::Internal(e.into()))?,
+            Encoding::Full,
+        ),
+    };
     let version = NewVersion {
-        body: serde_json::to_string(&a.map).map_err(|e| ApiError::Internal(e.into()))?,
+        body,
+        encoding,
         transmitters: a.map.len() as i64,
     };
     let n_tx = a.map.len();

@@ -4,7 +4,9 @@
 mod common;
 
 use common::*;
+use echomap_shared::map::TransmitterMap;
 use serde_json::{Value, json};
+use std::sync::Arc;
 
 #[tokio::test]
 async fn first_contribution_initializes_and_later_ones_match_and_merge() {
@@ -609,6 +611,49 @@ async fn concurrent_uploads_lose_no_update() {
             .unwrap();
     for (n, p) in parents {
         assert_eq!(p, (n > 1).then_some(n - 1));
+    }
+    // Every version reads back as exactly the merge of its parent and its upload — whether
+    // its body is stored whole or as a delta (group commits store all but their last version
+    // as deltas; this load forms batches, so both kinds are read).
+    let stored: Vec<(i64, String, String, String)> = sqlx::query_as(
+        "SELECT v.number, v.encoding, c.body, c.request_sha256 FROM versions v
+         JOIN contributions c ON c.id = v.contribution_id ORDER BY v.number",
+    )
+    .fetch_all(&pool)
+    .await
+    .unwrap();
+    assert!(stored.iter().any(|v| v.1 == "delta") && stored.iter().any(|v| v.1 == "full"));
+    let mut parent: Option<Arc<TransmitterMap>> = None;
+    for (n, _, body, sha) in &stored {
+        let upload: Value = serde_json::from_str(body).unwrap();
+        let user = Arc::new(TransmitterMap::from_json(&upload["map"].to_string()).unwrap());
+        let expected = match echomap_server::merge::integrate(
+            parent.as_deref(),
+            &user,
+            echomap_server::merge::seed_of(sha),
+            &Default::default(),
+            &Default::default(),
+        )
+        .unwrap()
+        {
+            echomap_server::merge::Outcome::Initialized { map }
+            | echomap_server::merge::Outcome::Merged { map, .. } => map,
+            other => panic!("version {n} from a rejected upload: {other:?}"),
+        };
+        let served: Value = c
+            .get(s.url(&format!("/v1/maps/crowd/versions/{n}")))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        assert_eq!(
+            served["transmitters"],
+            serde_json::to_value(expected.as_ref()).unwrap()["transmitters"],
+            "version {n}"
+        );
+        parent = Some(expected);
     }
     pool.close().await;
     let cur: Value = c

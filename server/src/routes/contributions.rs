@@ -300,6 +300,7 @@ pub async fn delete_contribution(
         };
         let v = NewVersion {
             body: serde_json::to_string(&rebuilt).map_err(anyhow::Error::from)?,
+            encoding: crate::delta::Encoding::Full,
             transmitters: rebuilt.len() as i64,
         };
         match app
