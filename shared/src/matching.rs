@@ -17,8 +17,8 @@
 //! adapts to the best inlier ratio and `confidence`. The chosen hypothesis is accepted by an
 //! a-contrario test on its residuals (`false_alarms`, in the manner of ORSA).
 //!
-//! Complexity per drawn triple: O(log P + k) for the consistent prior pairs (k of them, at
-//! most `max_hypotheses_per_sample` tried), O(U) for each single-pass check with a uniform
+//! Complexity: O(P²) once for the prior pairs, binned by distance; per drawn triple O(k log k)
+//! for the k prior pairs of consistent distance (at most `max_hypotheses_per_sample` tried), O(U) for each single-pass check with a uniform
 //! grid of prior means, and O(U·iterations) for each local optimization.
 
 use crate::hexgrid::HexGrid;
@@ -289,6 +289,70 @@ impl Grid {
     }
 }
 
+/// All pairs of prior candidates, counting-sorted into distance bins of width ≥ the distance
+/// tolerance: building is O(P²) without a sort, and a lookup sorts only its window.
+struct PairBins {
+    width: f64,
+    /// `pairs[start[b]..start[b + 1]]` are the pairs of bin b: (distance, i, j), i < j
+    start: Vec<u32>,
+    pairs: Vec<(f64, u32, u32)>,
+}
+
+impl PairBins {
+    /// At most this many bins (a far outlier widens them instead of allocating more).
+    const MAX_BINS: usize = 1 << 16;
+
+    fn new(p: &[Cand], tol: f64) -> Self {
+        let mut all = Vec::with_capacity(p.len() * p.len().saturating_sub(1) / 2);
+        let mut max_d: f64 = 0.0;
+        for i in 0..p.len() {
+            for j in (i + 1)..p.len() {
+                let d = (p[i].p - p[j].p).norm();
+                max_d = max_d.max(d);
+                all.push((d, i as u32, j as u32));
+            }
+        }
+        let width = tol.max(1e-3).max(max_d / (Self::MAX_BINS - 1) as f64);
+        let bins = (max_d / width) as usize + 1;
+        let bin = |d: f64| ((d / width) as usize).min(bins - 1);
+        let mut start = vec![0u32; bins + 1];
+        for &(d, _, _) in &all {
+            start[bin(d) + 1] += 1;
+        }
+        for b in 1..start.len() {
+            start[b] += start[b - 1];
+        }
+        let mut fill = start.clone();
+        let mut pairs = vec![(0.0, 0, 0); all.len()];
+        for x in all {
+            let b = bin(x.0);
+            pairs[fill[b] as usize] = x;
+            fill[b] += 1;
+        }
+        PairBins {
+            width,
+            start,
+            pairs,
+        }
+    }
+
+    /// The pairs whose distance is within `tol` of `d`, nearest first (ties by index).
+    fn window(&self, d: f64, tol: f64, out: &mut Vec<(f64, u32, u32)>) {
+        out.clear();
+        let bins = self.start.len() - 1;
+        let bin = |x: f64| ((x.max(0.0) / self.width) as usize).min(bins - 1);
+        let (lo, hi) = (bin(d - tol), bin(d + tol));
+        let range = self.start[lo] as usize..self.start[hi + 1] as usize;
+        out.extend(
+            self.pairs[range]
+                .iter()
+                .filter(|x| (x.0 - d).abs() <= tol)
+                .map(|&(x, i, j)| ((x - d).abs(), i, j)),
+        );
+        out.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+    }
+}
+
 /// ln Γ(x) for x > 0 (Lanczos, g = 7, n = 9; relative error ~1e-15).
 pub fn ln_gamma(x: f64) -> f64 {
     const G: [f64; 9] = [
@@ -519,17 +583,12 @@ pub fn match_maps(
             0,
         );
     }
-    // Prior pairs sorted by distance, for consistent-pair lookup.
-    let mut pair_index: Vec<(f64, usize, usize)> = Vec::with_capacity(p.len() * (p.len() - 1) / 2);
-    for i in 0..p.len() {
-        for j in (i + 1)..p.len() {
-            pair_index.push(((p[i].p - p[j].p).norm(), i, j));
-        }
-    }
-    pair_index.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // Prior pairs binned by distance, for consistent-pair lookup.
+    let tol = cfg.distance_tolerance_m;
+    let pairs = PairBins::new(&p, tol);
+    let mut window: Vec<(f64, u32, u32)> = Vec::new();
     let grid = Grid::new(&p, cfg.inlier_threshold_m.max(1e-3));
     let hex = prior.grid();
-    let tol = cfg.distance_tolerance_m;
 
     let mut best: Option<(f64, f64, Hypothesis)> = None;
     let mut best_count = 0usize;
@@ -558,30 +617,14 @@ pub fn match_maps(
         if dab < tol || dac < tol || dbc < tol {
             continue; // degenerate triple
         }
-        // prior pairs whose distance agrees with dab, nearest first (outwards from dab)
-        let mid = pair_index.partition_point(|x| x.0 < dab);
-        let (mut down, mut up) = (mid, mid);
+        // prior pairs whose distance agrees with dab, nearest first
+        pairs.window(dab, tol, &mut window);
         let mut tried = 0;
-        while tried < cfg.max_hypotheses_per_sample {
-            let below = (down > 0 && pair_index[down - 1].0 >= dab - tol)
-                .then(|| dab - pair_index[down - 1].0);
-            let above = (up < pair_index.len() && pair_index[up].0 <= dab + tol)
-                .then(|| pair_index[up].0 - dab);
-            let (_, i, j) = match (below, above) {
-                (None, None) => break,
-                (Some(x), Some(y)) if x <= y => {
-                    down -= 1;
-                    pair_index[down]
-                }
-                (Some(_), None) => {
-                    down -= 1;
-                    pair_index[down]
-                }
-                _ => {
-                    up += 1;
-                    pair_index[up - 1]
-                }
-            };
+        for &(_, i, j) in &window {
+            if tried >= cfg.max_hypotheses_per_sample {
+                break;
+            }
+            let (i, j) = (i as usize, j as usize);
             for (pa, pb) in [(i, j), (j, i)] {
                 if !b_compatible(ua, &p[pa], cfg) || !b_compatible(ub, &p[pb], cfg) {
                     continue;
