@@ -286,71 +286,97 @@ fn validate(hex_size_m: f64, transmitters: &[Transmitter]) -> Result<(), MapErro
     }
     let mut ids = HashSet::with_capacity(transmitters.len());
     for (ti, t) in transmitters.iter().enumerate() {
-        let tp = format!("transmitters[{ti}]");
+        let at = |w: Where| format!("transmitters[{ti}]{w}");
         if t.id.is_empty() || t.id.len() > MAX_ID_LEN || t.id.chars().any(|c| c.is_control()) {
-            return Err(err(format!("{tp}.id"), MapErrorKind::BadId));
+            return Err(err(at(Where::Id), MapErrorKind::BadId));
         }
         if !ids.insert(t.id.as_str()) {
-            return Err(err(
-                format!("{tp}.id"),
-                MapErrorKind::DuplicateId(t.id.clone()),
+            return Err(err(at(Where::Id), MapErrorKind::DuplicateId(t.id.clone())));
+        }
+        // the path is only formatted for an error: this runs on every merge of the server
+        check_transmitter(t).map_err(|(w, kind)| err(at(w), kind))?;
+    }
+    Ok(())
+}
+
+/// Where in a transmitter a validation error lies (formatted as a path suffix).
+#[derive(Debug, Clone, Copy)]
+enum Where {
+    Id,
+    Components,
+    Component(usize, &'static str),
+    Existence,
+    Reliability,
+    Visibility(i32, i32, &'static str),
+}
+
+impl std::fmt::Display for Where {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Where::Id => write!(f, ".id"),
+            Where::Components => write!(f, ".components"),
+            Where::Component(ci, field) => write!(f, ".components[{ci}].{field}"),
+            Where::Existence => write!(f, ".existence"),
+            Where::Reliability => write!(f, ".reliability_m"),
+            Where::Visibility(q, r, field) => write!(f, ".visibility[q={q},r={r}].{field}"),
+        }
+    }
+}
+
+fn check_transmitter(t: &Transmitter) -> Result<(), (Where, MapErrorKind)> {
+    let finite = |w: Where, v: f64| {
+        if v.is_finite() {
+            Ok(())
+        } else {
+            Err((w, MapErrorKind::NotFinite))
+        }
+    };
+    if t.components.is_empty() {
+        return Err((Where::Components, MapErrorKind::Empty));
+    }
+    if t.components.len() > MAX_COMPONENTS {
+        return Err((
+            Where::Components,
+            MapErrorKind::TooMany {
+                count: t.components.len(),
+                limit: MAX_COMPONENTS,
+            },
+        ));
+    }
+    let mut sum = 0.0;
+    for (ci, c) in t.components.iter().enumerate() {
+        finite(Where::Component(ci, "weight"), c.weight)?;
+        if c.weight <= 0.0 {
+            return Err((
+                Where::Component(ci, "weight"),
+                MapErrorKind::NotPositive(c.weight),
             ));
         }
-        if t.components.is_empty() {
-            return Err(err(format!("{tp}.components"), MapErrorKind::Empty));
+        sum += c.weight;
+        if c.mean.iter().any(|v| !v.is_finite()) {
+            return Err((Where::Component(ci, "mean"), MapErrorKind::NotFinite));
         }
-        if t.components.len() > MAX_COMPONENTS {
-            return Err(err(
-                format!("{tp}.components"),
-                MapErrorKind::TooMany {
-                    count: t.components.len(),
-                    limit: MAX_COMPONENTS,
-                },
-            ));
-        }
-        let mut sum = 0.0;
-        for (ci, c) in t.components.iter().enumerate() {
-            let cp = format!("{tp}.components[{ci}]");
-            check_finite(&format!("{cp}.weight"), c.weight)?;
-            if c.weight <= 0.0 {
-                return Err(err(
-                    format!("{cp}.weight"),
-                    MapErrorKind::NotPositive(c.weight),
+        validate_cov("", &c.cov).map_err(|e| (Where::Component(ci, "cov"), e.kind))?;
+    }
+    if (sum - 1.0).abs() > WEIGHT_SUM_TOLERANCE {
+        return Err((Where::Components, MapErrorKind::WeightSum(sum)));
+    }
+    finite(Where::Existence, t.existence)?;
+    if !(0.0..=1.0).contains(&t.existence) {
+        return Err((Where::Existence, MapErrorKind::NotProbability(t.existence)));
+    }
+    finite(Where::Reliability, t.reliability_m)?;
+    if t.reliability_m < 0.0 {
+        return Err((Where::Reliability, MapErrorKind::Negative(t.reliability_m)));
+    }
+    for (cell, b) in &t.visibility {
+        for (name, v) in [("alpha", b.alpha), ("beta", b.beta)] {
+            finite(Where::Visibility(cell.q, cell.r, name), v)?;
+            if v < 0.0 {
+                return Err((
+                    Where::Visibility(cell.q, cell.r, name),
+                    MapErrorKind::Negative(v),
                 ));
-            }
-            sum += c.weight;
-            if c.mean.iter().any(|v| !v.is_finite()) {
-                return Err(err(format!("{cp}.mean"), MapErrorKind::NotFinite));
-            }
-            validate_cov(&format!("{cp}.cov"), &c.cov)?;
-        }
-        if (sum - 1.0).abs() > WEIGHT_SUM_TOLERANCE {
-            return Err(err(
-                format!("{tp}.components"),
-                MapErrorKind::WeightSum(sum),
-            ));
-        }
-        check_finite(&format!("{tp}.existence"), t.existence)?;
-        if !(0.0..=1.0).contains(&t.existence) {
-            return Err(err(
-                format!("{tp}.existence"),
-                MapErrorKind::NotProbability(t.existence),
-            ));
-        }
-        check_finite(&format!("{tp}.reliability_m"), t.reliability_m)?;
-        if t.reliability_m < 0.0 {
-            return Err(err(
-                format!("{tp}.reliability_m"),
-                MapErrorKind::Negative(t.reliability_m),
-            ));
-        }
-        for (cell, b) in &t.visibility {
-            let vp = format!("{tp}.visibility[q={},r={}]", cell.q, cell.r);
-            for (name, v) in [("alpha", b.alpha), ("beta", b.beta)] {
-                check_finite(&format!("{vp}.{name}"), v)?;
-                if v < 0.0 {
-                    return Err(err(format!("{vp}.{name}"), MapErrorKind::Negative(v)));
-                }
             }
         }
     }
