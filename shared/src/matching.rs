@@ -204,23 +204,25 @@ struct Grid {
     items: Vec<u32>,
 }
 
+/// Bounding box (x0, y0, x1, y1) of candidate means; all zero for none.
+fn bounds(cands: &[Cand]) -> (f64, f64, f64, f64) {
+    if cands.is_empty() {
+        return (0.0, 0.0, 0.0, 0.0);
+    }
+    cands.iter().fold(
+        (
+            f64::INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NEG_INFINITY,
+        ),
+        |(x0, y0, x1, y1), c| (x0.min(c.p.x), y0.min(c.p.y), x1.max(c.p.x), y1.max(c.p.y)),
+    )
+}
+
 impl Grid {
     fn new(cands: &[Cand], cell: f64) -> Self {
-        let (mut x0, mut y0, mut x1, mut y1) = (
-            f64::INFINITY,
-            f64::INFINITY,
-            f64::NEG_INFINITY,
-            f64::NEG_INFINITY,
-        );
-        for c in cands {
-            x0 = x0.min(c.p.x);
-            y0 = y0.min(c.p.y);
-            x1 = x1.max(c.p.x);
-            y1 = y1.max(c.p.y);
-        }
-        if cands.is_empty() {
-            (x0, y0, x1, y1) = (0.0, 0.0, 0.0, 0.0);
-        }
+        let (x0, y0, x1, y1) = bounds(cands);
         let max_cells = 4 * cands.len() + 1024;
         let mut cell = cell;
         let dims = |cell: f64| {
@@ -772,18 +774,7 @@ fn minor_axis_std(pts: &[Point2<f64>]) -> f64 {
 /// puts inside the prior's box. The false-alarm count is tests · (n − 3) · q₃ · min_j of
 /// that tail (the factor n − 3 pays for choosing j).
 fn false_alarms(h: &Hypothesis, u: &[Cand], p: &[Cand], cfg: &MatchConfig, tests: usize) -> f64 {
-    let (mut x0, mut x1, mut y0, mut y1) = (
-        f64::INFINITY,
-        f64::NEG_INFINITY,
-        f64::INFINITY,
-        f64::NEG_INFINITY,
-    );
-    for c in p {
-        x0 = x0.min(c.p.x);
-        x1 = x1.max(c.p.x);
-        y0 = y0.min(c.p.y);
-        y1 = y1.max(c.p.y);
-    }
+    let (x0, y0, x1, y1) = bounds(p);
     let margin = cfg.inlier_threshold_m;
     let (x0, x1, y0, y1) = (x0 - margin, x1 + margin, y0 - margin, y1 + margin);
     let density = p.len() as f64 / ((x1 - x0) * (y1 - y0));
