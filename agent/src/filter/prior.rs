@@ -233,7 +233,13 @@ impl PriorTracker {
         let user = export_map(filter)?;
         let mut rng = ChaCha8Rng::seed_from_u64(self.seed ^ t.to_bits().rotate_left(17));
         let m = match_maps(&user, &self.map, &self.settings.matching, &mut rng);
-        let action = if m.accepted {
+        // A transform in use is only replaced by one that explains at least as much of the
+        // map now: in a building's self-similar layout of virtual transmitters a wrong
+        // transform can pass the a-contrario test while the one in use still fits better.
+        let in_use = self
+            .current
+            .map(|cur| count_inliers(&user, &self.map, &cur, &self.settings.matching));
+        let action = if m.accepted && in_use.is_none_or(|n| m.inliers >= n) {
             let action = if self.current.is_some() {
                 "replaced"
             } else {
@@ -261,8 +267,7 @@ impl PriorTracker {
                 filter.config().visibility_prior,
             )));
             action
-        } else if let Some(cur) = self.current {
-            let still = count_inliers(&user, &self.map, &cur, &self.settings.matching);
+        } else if let Some(still) = in_use {
             if still >= self.settings.matching.min_inliers {
                 "kept"
             } else {
