@@ -424,6 +424,24 @@ struct Hypothesis {
     loc_score: f64,
 }
 
+/// The squared Mahalanobis distance between user candidate `uc` (moved to `q`, covariance
+/// `cov_u` rotated into the map frame) and prior candidate `pc`, when they are b-compatible
+/// and inside the χ² gate.
+fn gated(
+    uc: &Cand,
+    q: &Point2<f64>,
+    cov_u: &nalgebra::Matrix2<f64>,
+    pc: &Cand,
+    cfg: &MatchConfig,
+) -> Option<f64> {
+    if !b_compatible(uc, pc, cfg) {
+        return None;
+    }
+    let r = pc.p - q;
+    let d2 = (cov_u + pc.cov).cholesky()?.solve(&r).dot(&r);
+    (d2 <= cfg.inlier_gate_chi2).then_some(d2)
+}
+
 /// One-to-one inlier pairs `(user, prior)` under `iso`, greedy by Mahalanobis distance, sorted.
 fn inlier_pairs(
     iso: &Isometry2<f64>,
@@ -440,15 +458,8 @@ fn inlier_pairs(
         let cov_u = rot * uc.cov * rot.transpose();
         grid.near(&q, cfg.inlier_threshold_m, p, &mut near);
         for &j in &near {
-            if b_compatible(uc, &p[j], cfg) {
-                let r = p[j].p - q;
-                let d2 = (cov_u + p[j].cov)
-                    .cholesky()
-                    .map(|c| r.dot(&c.solve(&r)))
-                    .unwrap_or(f64::INFINITY);
-                if d2 <= cfg.inlier_gate_chi2 {
-                    cand_pairs.push((d2, i, j));
-                }
+            if let Some(d2) = gated(uc, &q, &cov_u, &p[j], cfg) {
+                cand_pairs.push((d2, i, j));
             }
         }
     }
@@ -486,14 +497,10 @@ fn quick_count(
         }
         let q = iso * uc.p;
         grid.near(&q, cfg.inlier_threshold_m, p, &mut near);
-        let hit = near.iter().any(|&j| {
-            b_compatible(uc, &p[j], cfg) && {
-                let r = p[j].p - q;
-                (rot * uc.cov * rot.transpose() + p[j].cov)
-                    .cholesky()
-                    .is_some_and(|c| r.dot(&c.solve(&r)) <= cfg.inlier_gate_chi2)
-            }
-        });
+        let cov_u = rot * uc.cov * rot.transpose();
+        let hit = near
+            .iter()
+            .any(|&j| gated(uc, &q, &cov_u, &p[j], cfg).is_some());
         count += usize::from(hit);
     }
     (count >= need).then_some(count)
