@@ -187,28 +187,56 @@ fn update_mixture(
     cfg: &FilterConfig,
     merge_now: bool,
 ) -> f64 {
-    let mut logs = Vec::with_capacity(comps.len());
-    let mut next = Vec::with_capacity(comps.len());
-    for c in comps.iter() {
-        if let Some(u) = meas.update(pose, &c.g) {
-            logs.push(c.weight.ln() + u.log_likelihood);
-            next.push(Comp {
-                weight: 0.0,
-                g: u.posterior,
-            });
+    // In place: each component's posterior replaces its prior, its log-likelihood is kept in
+    // `weight` for the moment (NaN marks a numerically degenerate update, dropped below).
+    let mut max_ll = f64::NEG_INFINITY;
+    let mut any = false;
+    let mut lls = [0.0f64; 32];
+    let small = comps.len() <= lls.len();
+    let mut big: Vec<f64> = Vec::new();
+    for (k, c) in comps.iter_mut().enumerate() {
+        let ll = match meas.update(pose, &c.g) {
+            Some(u) => {
+                c.g = u.posterior;
+                any = true;
+                u.log_likelihood
+            }
+            None => f64::NAN,
+        };
+        if ll > max_ll {
+            max_ll = ll;
+        }
+        if small {
+            lls[k] = ll;
+        } else {
+            big.push(ll);
         }
     }
-    if next.is_empty() {
-        // Numerically degenerate: keep the prior mixture, give the particle no support.
+    if !any || !max_ll.is_finite() {
+        // Numerically degenerate: the particle gets no support.
         return -1e3;
     }
-    let total = log_sum_exp(logs.iter().copied());
-    for (c, l) in next.iter_mut().zip(&logs) {
-        c.weight = (l - total).exp();
+    let lls = if small { &lls[..comps.len()] } else { &big[..] };
+    // w_c ∝ w_c·N(z; ẑ_c, P_zz,c) (eq. 46) with one exp per component and one ln per
+    // mixture: Σ_c w_c·exp(ll_c − max) is the marginal likelihood scaled by exp(−max)
+    let mut sum = 0.0;
+    for (c, ll) in comps.iter_mut().zip(lls) {
+        c.weight = if ll.is_nan() {
+            0.0
+        } else {
+            c.weight * (ll - max_ll).exp()
+        };
+        sum += c.weight;
     }
-    *comps = next;
+    comps.retain(|c| c.weight > 0.0);
+    if comps.is_empty() || sum <= 0.0 {
+        return -1e3;
+    }
+    for c in comps.iter_mut() {
+        c.weight /= sum;
+    }
     tidy(comps, cfg, merge_now);
-    total
+    max_ll + sum.ln()
 }
 
 /// Pruning (ρ), merging of close components and the per-transmitter cap (seed 002 §4.3).
@@ -540,7 +568,7 @@ impl Filter {
         let mut rng =
             ChaCha8Rng::seed_from_u64(self.cfg.seed ^ 0xA5A5_5A5A_0F0F_F0F0 ^ self.step as u64);
         let u0: f64 = rng.random::<f64>() / n as f64;
-        let mut out = Vec::with_capacity(n);
+        let mut picks = Vec::with_capacity(n);
         let mut cum = w[0];
         let mut j = 0;
         for k in 0..n {
@@ -549,11 +577,21 @@ impl Filter {
                 j += 1;
                 cum += w[j];
             }
-            let mut p = self.particles[j].clone();
-            p.log_w = -(n as f64).ln();
-            out.push(p);
+            picks.push(j);
         }
-        self.particles = out;
+        // Copies share their transmitters (Arc); cloning and dropping thousands of particles
+        // is reference counting on every transmitter, done on all workers.
+        let ln_w = -(n as f64).ln();
+        let old = std::mem::take(&mut self.particles);
+        self.particles = picks
+            .par_iter()
+            .map(|&j| {
+                let mut p = old[j].clone();
+                p.log_w = ln_w;
+                p
+            })
+            .collect();
+        old.into_par_iter().for_each(drop);
     }
 }
 

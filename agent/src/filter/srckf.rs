@@ -158,34 +158,78 @@ pub fn update<const M: usize>(
     // K = Pxz·Pzz⁻¹  ⇔  Kᵀ = Pzz⁻¹·Pxzᵀ
     let k: SMatrix<f64, 3, M> = chol.solve(&pxz.transpose()).transpose();
     let mean = g.mean + k * innovation;
-    let a = p.x_dev - k * p.z_dev;
-    let b = k * r_sqrt;
-    // tria([a, b]) — assembled in a fixed 3×(6+M) buffer (M ≤ 2 here).
-    let sqrt = match M {
-        1 => tria(&SMatrix::<f64, 3, 7>::from_fn(|i, j| {
-            if j < POINTS {
-                a[(i, j)]
-            } else {
-                b[(i, j - POINTS)]
+    // P⁺ = P − K·P_zz·Kᵀ = S·Sᵀ − U·Uᵀ with U = K·L_zz: M rank-1 downdates of the factor S
+    // (O(n²) each). Where a downdate would cancel badly (a direction the measurement
+    // determines almost completely) the factor comes from tria([X − K·Z, K·S_R]) instead,
+    // the Joseph form, which stays positive definite in floating point.
+    let u = k * chol.l();
+    let sqrt = match downdate(&g.sqrt, &u) {
+        Some(s) => s,
+        None => {
+            let a = p.x_dev - k * p.z_dev;
+            let b = k * r_sqrt;
+            match M {
+                1 => tria(&SMatrix::<f64, 3, 7>::from_fn(|i, j| {
+                    if j < POINTS {
+                        a[(i, j)]
+                    } else {
+                        b[(i, j - POINTS)]
+                    }
+                })),
+                2 => tria(&SMatrix::<f64, 3, 8>::from_fn(|i, j| {
+                    if j < POINTS {
+                        a[(i, j)]
+                    } else {
+                        b[(i, j - POINTS)]
+                    }
+                })),
+                _ => {
+                    let p_new = a * a.transpose() + b * b.transpose();
+                    p_new.cholesky()?.l()
+                }
             }
-        })),
-        2 => tria(&SMatrix::<f64, 3, 8>::from_fn(|i, j| {
-            if j < POINTS {
-                a[(i, j)]
-            } else {
-                b[(i, j - POINTS)]
-            }
-        })),
-        _ => {
-            let p_new = a * a.transpose() + b * b.transpose();
-            p_new.cholesky()?.l()
         }
     };
-    let log_likelihood = log_normal(&innovation, &p.pzz)?;
+    // ln N(ν; 0, P_zz) from the factor already computed
+    let l = chol.l();
+    let log_det: f64 = 2.0 * (0..M).map(|i| l[(i, i)]).product::<f64>().ln();
+    let d2 = innovation.dot(&chol.solve(&innovation));
+    let log_likelihood = -0.5 * (d2 + log_det + M as f64 * (2.0 * std::f64::consts::PI).ln());
     Some(Updated {
         posterior: SqrtGaussian { mean, sqrt },
         log_likelihood,
     })
+}
+
+/// Smallest ratio of a downdated diagonal element to the original (squared) that the
+/// downdate accepts; below it the Joseph-form tria is used (cancellation would cost more
+/// than 6 of the 16 digits).
+const DOWNDATE_MIN_RATIO: f64 = 1e-6;
+
+/// Lower-triangular L' with L'·L'ᵀ = L·Lᵀ − U·Uᵀ by successive rank-1 Cholesky downdates;
+/// None where the result would not be safely positive definite.
+fn downdate<const M: usize>(l: &Matrix3<f64>, u: &SMatrix<f64, 3, M>) -> Option<Matrix3<f64>> {
+    let mut l = *l;
+    for c in 0..M {
+        let mut x = u.column(c).into_owned();
+        for k in 0..3 {
+            let lkk = l[(k, k)];
+            let r2 = lkk * lkk - x[k] * x[k];
+            if !(r2 > DOWNDATE_MIN_RATIO * lkk * lkk) {
+                return None;
+            }
+            let r = r2.sqrt();
+            let (cos, sin) = (r / lkk, x[k] / lkk);
+            let inv_cos = lkk / r;
+            l[(k, k)] = r;
+            for i in (k + 1)..3 {
+                let lik = (l[(i, k)] - sin * x[i]) * inv_cos;
+                x[i] = cos * x[i] - sin * lik;
+                l[(i, k)] = lik;
+            }
+        }
+    }
+    Some(l)
 }
 
 /// The plain sigma-point average of the measurement likelihood (seed 002 eq. 43), kept to
@@ -228,6 +272,23 @@ mod tests {
         assert_relative_eq!(l * l.transpose(), a * a.transpose(), epsilon = 1e-10);
         assert!(l[(0, 1)] == 0.0 && l[(0, 2)] == 0.0 && l[(1, 2)] == 0.0);
         assert!((0..3).all(|i| l[(i, i)] >= 0.0));
+    }
+
+    #[test]
+    fn downdate_reproduces_the_difference_or_declines() {
+        let l = Matrix3::new(2.0, 0.0, 0.0, 0.5, 1.5, 0.0, -0.3, 0.2, 1.1);
+        let u = SMatrix::<f64, 3, 2>::new(0.9, 0.1, 0.3, 0.7, -0.2, 0.4);
+        let d = downdate(&l, &u).expect("positive definite difference");
+        assert_relative_eq!(
+            d * d.transpose(),
+            l * l.transpose() - u * u.transpose(),
+            epsilon = 1e-12
+        );
+        assert!(d[(0, 1)] == 0.0 && d[(0, 2)] == 0.0 && d[(1, 2)] == 0.0);
+        // a downdate that removes (almost) all of a direction is declined, not returned
+        // with a cancelled diagonal
+        let all = SMatrix::<f64, 3, 1>::new(2.0, 0.5, -0.3);
+        assert!(downdate(&l, &all).is_none());
     }
 
     #[test]
