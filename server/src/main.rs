@@ -3,6 +3,10 @@ use clap::Parser;
 use echomap_server::{Application, Config, init_tracing, shutdown_signal};
 use std::io::Write;
 
+// Request handling, JSON and merging allocate many small buffers on every worker.
+#[global_allocator]
+static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 #[tokio::main]
 async fn main() -> Result<()> {
     let config = Config::parse();
