@@ -215,7 +215,7 @@ fn downdate<const M: usize>(l: &Matrix3<f64>, u: &SMatrix<f64, 3, M>) -> Option<
         for k in 0..3 {
             let lkk = l[(k, k)];
             let r2 = lkk * lkk - x[k] * x[k];
-            if !(r2 > DOWNDATE_MIN_RATIO * lkk * lkk) {
+            if r2.is_nan() || r2 <= DOWNDATE_MIN_RATIO * lkk * lkk {
                 return None;
             }
             let r = r2.sqrt();
