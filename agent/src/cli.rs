@@ -180,6 +180,11 @@ pub struct RunArgs {
     /// std (m) added to every prior transmitter's position covariance
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().position_floor_m)]
     pub prior_floor: f64,
+    /// how the matched transform's uncertainty enters the filter: K > 0 — every particle
+    /// draws its own correction of the transform from the fit's spread, stds × K; 0 — every
+    /// prior covariance is inflated by the spread instead
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().transform_draws.unwrap_or(0.0))]
+    pub transform_draws: f64,
     /// with --server: fetch and upload, but do not use the prior map in the filter
     #[arg(long)]
     pub ignore_prior: bool,
@@ -518,10 +523,15 @@ pub fn run(cli: Cli) -> Result<()> {
                 a.prior_floor >= 0.0 && a.prior_floor.is_finite(),
                 "--prior-floor must be a non-negative number of metres"
             );
+            anyhow::ensure!(
+                a.transform_draws >= 0.0 && a.transform_draws.is_finite(),
+                "--transform-draws must be a non-negative factor"
+            );
             let tracker = prior.filter(|p| !p.is_empty() && !a.ignore_prior).map(|p| {
                 let settings = crate::filter::PriorSettings {
                     match_every_s: a.match_every,
                     position_floor_m: a.prior_floor,
+                    transform_draws: (a.transform_draws > 0.0).then_some(a.transform_draws),
                     ..Default::default()
                 };
                 crate::filter::PriorTracker::new(p, settings, a.seed)

@@ -44,6 +44,62 @@ pub struct Particle {
     pub bound: Vec<(u64, u32)>,
     /// prior-map transmitters (indices into the prior) this particle has taken over
     pub prior_used: Vec<u32>,
+    /// this particle's own draw of the prior's transform (a static parameter of the
+    /// particle, drawn when the prior is set; None = the transform as matched)
+    pub prior_frame: Option<FrameDelta>,
+}
+
+/// A small rigid motion of the agent frame, `D(p) = c + R(δθ)·(p − c) + δt`: one particle's
+/// correction of the matched transform `agent_from_map`, so that the prior transmitters sit at
+/// `D(agent_from_map(p_map))` for that particle. Evaluating a prior transmitter from the
+/// particle's pose equals evaluating the untransformed one from `D⁻¹(pose)` (ranges and
+/// angles of arrival are invariant under a rigid motion of both), which costs nothing per
+/// candidate.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameDelta {
+    pub centroid: Point2<f64>,
+    pub d_theta: f64,
+    pub d_t: Vector2<f64>,
+}
+
+impl FrameDelta {
+    /// `D⁻¹` applied to a pose (position and heading).
+    pub(crate) fn inverse_pose(&self, pose: &Pose) -> Pose {
+        let (s, c) = (-self.d_theta).sin_cos();
+        let (x, y) = (
+            pose.x - self.centroid.x - self.d_t.x,
+            pose.y - self.centroid.y - self.d_t.y,
+        );
+        Pose {
+            x: self.centroid.x + c * x - s * y,
+            y: self.centroid.y + s * x + c * y,
+            heading: wrap_angle(pose.heading - self.d_theta),
+            speed: pose.speed,
+        }
+    }
+
+    /// `D` applied to a mixture: means moved, x/y covariance blocks rotated (b is invariant).
+    pub(crate) fn apply(&self, comps: &[Comp]) -> Vec<Comp> {
+        let (s, c) = self.d_theta.sin_cos();
+        let r = nalgebra::Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
+        comps
+            .iter()
+            .filter_map(|k| {
+                let m = k.g.mean;
+                let (x, y) = (m.x - self.centroid.x, m.y - self.centroid.y);
+                let mean = nalgebra::Vector3::new(
+                    self.centroid.x + c * x - s * y + self.d_t.x,
+                    self.centroid.y + s * x + c * y + self.d_t.y,
+                    m.z,
+                );
+                let cov = r * k.g.cov() * r.transpose();
+                SqrtGaussian::from_cov(mean, &cov).map(|g| Comp {
+                    weight: k.weight,
+                    g,
+                })
+            })
+            .collect()
+    }
 }
 
 /// Identity of a transmitter: the track id that created it.
@@ -315,6 +371,7 @@ impl Filter {
                     txs: Vec::new(),
                     bound: Vec::new(),
                     prior_used: Vec::new(),
+                    prior_frame: None,
                 }
             })
             .collect();
@@ -337,7 +394,33 @@ impl Filter {
 
     /// Sets (or, with None, drops) the prior map offered to new tracks. Transmitters that
     /// particles already took over from an earlier prior stay theirs.
+    ///
+    /// When the prior carries a transform spread, every particle draws its own correction of
+    /// the matched transform from it ([`FrameDelta`]): the transform becomes a static
+    /// parameter of the particle, and the particles whose draw agrees with their own track
+    /// (anchored at the known start) gain weight as they measure prior transmitters.
     pub fn set_prior(&mut self, prior: Option<Prior>) {
+        let draws: Vec<Option<FrameDelta>> = match prior.as_ref().and_then(|p| p.spread) {
+            Some(u) => {
+                let mut rng = ChaCha8Rng::seed_from_u64(
+                    self.cfg.seed ^ 0x5EED_F4A3_0000_0000 ^ self.step as u64,
+                );
+                (0..self.particles.len())
+                    .map(|_| {
+                        let n: [f64; 3] = std::array::from_fn(|_| rng.sample(StandardNormal));
+                        Some(FrameDelta {
+                            centroid: u.centroid,
+                            d_theta: u.var_theta.sqrt() * n[0],
+                            d_t: Vector2::new(n[1], n[2]) * u.var_t.sqrt(),
+                        })
+                    })
+                    .collect()
+            }
+            None => vec![None; self.particles.len()],
+        };
+        for (p, d) in self.particles.iter_mut().zip(draws) {
+            p.prior_frame = d;
+        }
         self.prior = prior.map(Arc::new);
     }
 
@@ -678,13 +761,15 @@ impl Particle {
                 }
             }
             if let Some(prior) = prior {
+                let pose = self.prior_pose();
+                let here = Point2::new(pose.x, pose.y);
                 for (idx, ptx) in prior.txs.iter().enumerate() {
                     if ptx.existence < cfg.prior_min_existence
                         || self.prior_used.contains(&(idx as u32))
                     {
                         continue;
                     }
-                    if let Some(ll) = candidate_log_likelihood(&ptx.comps, &self.pose, m, cfg) {
+                    if let Some(ll) = candidate_log_likelihood(&ptx.comps, &pose, m, cfg) {
                         let pv = prior.visibility(idx, &here);
                         cands.push((Cand::Prior(idx), ll + pv.ln()));
                     }
@@ -736,7 +821,10 @@ impl Particle {
             Some(Cand::Prior(pidx)) => {
                 let prior = prior.expect("a prior candidate needs a prior");
                 let mut comps = prior.txs[pidx].comps.clone();
-                let _ = update_mixture(&mut comps, m, &self.pose, cfg, merge_now);
+                let _ = update_mixture(&mut comps, m, &self.prior_pose(), cfg, merge_now);
+                if let Some(d) = &self.prior_frame {
+                    comps = d.apply(&comps);
+                }
                 self.prior_used.push(pidx as u32);
                 self.start_transmitter(identity, comps, track, updated);
             }
@@ -748,6 +836,15 @@ impl Particle {
                 }
                 self.start_transmitter(identity, comps, track, updated);
             }
+        }
+    }
+
+    /// The pose from which this particle sees the prior's transmitters as the prior holds
+    /// them: `D⁻¹(pose)` for its own transform draw.
+    fn prior_pose(&self) -> Pose {
+        match &self.prior_frame {
+            Some(d) => d.inverse_pose(&self.pose),
+            None => self.pose,
         }
     }
 

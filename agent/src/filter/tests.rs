@@ -360,3 +360,63 @@ fn transform_uncertainty_follows_the_fit_geometry() {
     );
     assert!(TransformUncertainty::from_fit(&pts[..2], &res[..2], 0.0).is_none());
 }
+
+#[test]
+fn a_particles_transform_draw_moves_the_prior_rigidly() {
+    // Seeing the untransformed prior from D⁻¹(pose) must give the same range and angle of
+    // arrival as seeing D(prior) from the pose, and D must keep the clock offset and the
+    // covariance's eigenvalues.
+    use super::model::{Comp, Pose, h_toa_aoa};
+    use super::rbpf::FrameDelta;
+    use super::srckf::SqrtGaussian;
+    use nalgebra::{Matrix3, Point2, Vector2, Vector3};
+    let d = FrameDelta {
+        centroid: Point2::new(3.0, -2.0),
+        d_theta: 0.07,
+        d_t: Vector2::new(0.4, -0.25),
+    };
+    let cov = Matrix3::new(0.5, 0.1, 0.05, 0.1, 0.3, -0.02, 0.05, -0.02, 0.2);
+    let comp = Comp {
+        weight: 1.0,
+        g: SqrtGaussian::from_cov(Vector3::new(12.0, 7.5, 1.5), &cov).unwrap(),
+    };
+    let moved = d.apply(std::slice::from_ref(&comp));
+    assert_eq!(moved.len(), 1);
+    for pose in [
+        Pose {
+            x: 0.0,
+            y: 0.0,
+            heading: 0.0,
+            speed: 1.0,
+        },
+        Pose {
+            x: 20.0,
+            y: -4.0,
+            heading: 3.1,
+            speed: 0.0,
+        },
+        Pose {
+            x: -5.0,
+            y: 9.0,
+            heading: -1.2,
+            speed: 1.0,
+        },
+    ] {
+        let direct = h_toa_aoa(&pose, &moved[0].g.mean);
+        let via = h_toa_aoa(&d.inverse_pose(&pose), &comp.g.mean);
+        assert!((direct.x - via.x).abs() < 1e-9, "{direct} vs {via}");
+        assert!(echomap_shared::wrap_angle(direct.y - via.y).abs() < 1e-6);
+    }
+    assert!((moved[0].g.mean.z - 1.5).abs() < 1e-12);
+    let (e0, e1) = (
+        cov.symmetric_eigenvalues().as_slice().to_vec(),
+        moved[0].g.cov().symmetric_eigenvalues().as_slice().to_vec(),
+    );
+    let mut e0 = e0;
+    let mut e1 = e1;
+    e0.sort_by(f64::total_cmp);
+    e1.sort_by(f64::total_cmp);
+    for (a, b) in e0.iter().zip(&e1) {
+        assert!((a - b).abs() < 1e-9);
+    }
+}
