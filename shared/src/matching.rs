@@ -55,9 +55,13 @@ pub struct MatchConfig {
     pub max_iterations: usize,
     /// most prior triples tried per user triple; default 16
     pub max_hypotheses_per_sample: usize,
-    /// the inliers must spread at least this far (m, std along their minor axis): nearly
-    /// collinear inliers cannot tell a rotation from a mirror image; default 1.0
-    pub min_inlier_spread_m: f64,
+    /// nearly collinear inliers cannot tell a rotation from a mirror image: the best mirror
+    /// image (an improper rigid motion) of the inlier pairs must fit worse than the match
+    /// by at least this much summed squared Mahalanobis distance (χ², pair covariances);
+    /// default 13.8 (the 99.9 % point of χ² with 2 degrees of freedom). Relative to the
+    /// pairs' uncertainties, so a layout narrow in metres but wide against its position
+    /// errors (MRCLAM's landmarks: minor-axis std 1.0 m) is accepted
+    pub min_mirror_chi2: f64,
     /// use the visibility term of eq. 18; default true
     pub use_visibility: bool,
     /// weight of the visibility log-likelihood ratio in the score; default 1.0
@@ -88,7 +92,7 @@ impl Default for MatchConfig {
             confidence: 0.999,
             max_iterations: 2000,
             max_hypotheses_per_sample: 64,
-            min_inlier_spread_m: 1.0,
+            min_mirror_chi2: 13.8,
             use_visibility: true,
             visibility_weight: 1.0,
             visibility_max_count: 1.0,
@@ -714,11 +718,11 @@ pub fn match_maps(
         return MatchResult::rejected("no consistent transmitter triple found".into(), it);
     };
     let nfa = false_alarms(&h, &u, &p, cfg, tests.max(1));
-    let spread = minor_axis_std(&h.pairs.iter().map(|&(_, j)| p[j].p).collect::<Vec<_>>());
+    let mirror = mirror_excess_chi2(&h, &u, &p);
     let mut result = MatchResult {
         accepted: h.pairs.len() >= cfg.min_inliers
             && nfa <= cfg.max_false_alarms
-            && spread >= cfg.min_inlier_spread_m,
+            && mirror >= cfg.min_mirror_chi2,
         map_from_agent: h.iso,
         correspondences: h
             .pairs
@@ -737,10 +741,10 @@ pub fn match_maps(
             "only {} inliers, {} needed",
             result.inliers, cfg.min_inliers
         ));
-    } else if spread < cfg.min_inlier_spread_m {
+    } else if mirror < cfg.min_mirror_chi2 {
         result.reason = Some(format!(
-            "the {} inliers are nearly collinear (spread {spread:.2} m < {} m): a mirror image would fit as well",
-            result.inliers, cfg.min_inlier_spread_m
+            "the {} inliers are nearly collinear: a mirror image fits them almost as well (χ² worse by {mirror:.1} < {})",
+            result.inliers, cfg.min_mirror_chi2
         ));
     } else if !result.accepted {
         result.reason = Some(format!(
@@ -751,18 +755,50 @@ pub fn match_maps(
     result
 }
 
-/// Standard deviation of points along their minor principal axis.
-fn minor_axis_std(pts: &[Point2<f64>]) -> f64 {
-    if pts.len() < 2 {
-        return 0.0;
-    }
-    let n = pts.len() as f64;
-    let c = pts.iter().fold(Vector2::zeros(), |a, p| a + p.coords) / n;
-    let cov = pts.iter().fold(nalgebra::Matrix2::zeros(), |a, p| {
-        let d = p.coords - c;
-        a + d * d.transpose()
-    }) / n;
-    cov.symmetric_eigenvalues().min().max(0.0).sqrt()
+/// Summed squared Mahalanobis distance of the inlier pairs under `iso`, each pair with the
+/// covariance `R·C_u·Rᵀ + C_p` (`reflect`: the user points and covariances mirrored at the
+/// x axis first).
+fn pair_chi2(
+    iso: &Isometry2<f64>,
+    pairs: &[(usize, usize)],
+    u: &[Cand],
+    p: &[Cand],
+    reflect: bool,
+) -> f64 {
+    let m = nalgebra::Matrix2::new(1.0, 0.0, 0.0, if reflect { -1.0 } else { 1.0 });
+    let rot = iso.rotation.to_rotation_matrix().into_inner();
+    pairs
+        .iter()
+        .map(|&(i, j)| {
+            let q = iso * Point2::from(m * u[i].p.coords);
+            let cov = rot * m * u[i].cov * m.transpose() * rot.transpose() + p[j].cov;
+            let r = p[j].p - q;
+            cov.cholesky()
+                .map(|c| r.dot(&c.solve(&r)))
+                .unwrap_or(f64::INFINITY)
+        })
+        .sum()
+}
+
+/// How much worse the best mirror image of the inlier pairs fits than the hypothesis itself
+/// (χ² difference): the user points reflected at the x axis, then the least-squares proper
+/// rigid fit onto their prior partners — together the best improper rigid motion.
+fn mirror_excess_chi2(h: &Hypothesis, u: &[Cand], p: &[Cand]) -> f64 {
+    let from: Vec<Point2<f64>> = h
+        .pairs
+        .iter()
+        .map(|&(i, _)| Point2::new(u[i].p.x, -u[i].p.y))
+        .collect();
+    let to: Vec<Point2<f64>> = h.pairs.iter().map(|&(_, j)| p[j].p).collect();
+    // None: every rotation fits equally well (e.g. a reflected square onto itself), so the
+    // centroids aligned without rotation is as good as any
+    let mirror = fit_rigid(&from, &to).unwrap_or_else(|| {
+        let n = from.len().max(1) as f64;
+        let cf = from.iter().fold(Vector2::zeros(), |a, q| a + q.coords) / n;
+        let ct = to.iter().fold(Vector2::zeros(), |a, q| a + q.coords) / n;
+        Isometry2::new(ct - cf, 0.0)
+    });
+    pair_chi2(&mirror, &h.pairs, u, p, true) - pair_chi2(&h.iso, &h.pairs, u, p, false)
 }
 
 /// Expected number of false alarms of a hypothesis (a-contrario test in the manner of ORSA,
