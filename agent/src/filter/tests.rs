@@ -199,41 +199,6 @@ fn association_recognizes_a_regained_transmitter() {
 
 /// The true virtual transmitters of a simulated track as a map in another frame
 /// (`map_from_local`), each with an isotropic position std of `std_m`.
-fn true_prior(
-    out: &SimOutput,
-    map_from_local: &nalgebra::Isometry2<f64>,
-    std_m: f64,
-) -> echomap_shared::TransmitterMap {
-    use echomap_shared::map::Transmitter;
-    use echomap_shared::mixture::Component;
-    use nalgebra::{Matrix3, Point2, Vector3};
-    let mut seen: Vec<[f64; 3]> = Vec::new();
-    let mut txs = Vec::new();
-    for t in &out.truth.transmitters {
-        let s = t.state;
-        if seen
-            .iter()
-            .any(|q| (0..3).all(|k| (q[k] - s[k]).abs() < 1e-6))
-        {
-            continue;
-        }
-        seen.push(s);
-        let p = map_from_local * Point2::new(s[0], s[1]);
-        txs.push(Transmitter {
-            id: format!("p{}", t.track),
-            components: vec![Component::new(
-                1.0,
-                Vector3::new(p.x, p.y, s[2]),
-                Matrix3::identity() * std_m * std_m,
-            )],
-            existence: 1.0,
-            reliability_m: 50.0,
-            visibility: Default::default(),
-        });
-    }
-    echomap_shared::TransmitterMap::new(2.0, txs).unwrap()
-}
-
 fn mean_mae(run: &crate::run::RunOutput) -> f64 {
     let v: Vec<f64> = run
         .rows
@@ -263,7 +228,7 @@ fn a_correct_prior_map_is_matched_and_lowers_the_error() {
             },
         )
         .unwrap();
-        let prior = true_prior(&out, &map_from_local, 0.3);
+        let prior = out.truth_map(&map_from_local, 0.3);
         let a = run_filter(&out.log, Some(&out.truth), cfg(seed, 200), false).unwrap();
         let tracker = PriorTracker::new(prior, PriorSettings::default(), seed);
         let b = run_filter_with_prior(
@@ -307,7 +272,7 @@ fn an_unrelated_prior_map_is_never_used() {
         },
     )
     .unwrap();
-    let truth_prior = true_prior(&out, &nalgebra::Isometry2::identity(), 0.3);
+    let truth_prior = out.truth_map(&nalgebra::Isometry2::identity(), 0.3);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
     let scrambled: Vec<_> = truth_prior
         .transmitters()

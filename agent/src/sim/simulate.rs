@@ -363,3 +363,44 @@ pub fn visible_virtual_transmitters(
     }
     seen.into_iter().flatten().collect()
 }
+
+impl SimOutput {
+    /// The true map of the distinct (virtual) transmitters the track saw, in the frame
+    /// `map_from_local` puts the track's local frame into, each one Gaussian of std `std_m` in
+    /// x, y and b, existence 1, reliability 50 m, no visibility counts: a perfect prior map,
+    /// for tests and for measuring how far a perfect map gets.
+    pub fn truth_map(
+        &self,
+        map_from_local: &nalgebra::Isometry2<f64>,
+        std_m: f64,
+    ) -> echomap_shared::TransmitterMap {
+        use echomap_shared::map::Transmitter;
+        use echomap_shared::mixture::Component;
+        use nalgebra::{Matrix3, Point2, Vector3};
+        let mut seen: Vec<[f64; 3]> = Vec::new();
+        let mut txs = Vec::new();
+        for t in &self.truth.transmitters {
+            let s = t.state;
+            if seen
+                .iter()
+                .any(|q| (0..3).all(|k| (q[k] - s[k]).abs() < 1e-6))
+            {
+                continue;
+            }
+            seen.push(s);
+            let p = map_from_local * Point2::new(s[0], s[1]);
+            txs.push(Transmitter {
+                id: format!("p{}", t.track),
+                components: vec![Component::new(
+                    1.0,
+                    Vector3::new(p.x, p.y, s[2]),
+                    Matrix3::identity() * std_m * std_m,
+                )],
+                existence: 1.0,
+                reliability_m: 50.0,
+                visibility: Default::default(),
+            });
+        }
+        echomap_shared::TransmitterMap::new(2.0, txs).expect("true transmitters make a valid map")
+    }
+}
