@@ -300,19 +300,24 @@ impl PriorTracker {
                 &m.residuals_m,
                 self.settings.residual_floor_m,
             );
-            let draws = self.settings.transform_draws.and(unc);
-            let mut prior = Prior::new(
-                &self.map,
-                m.map_from_agent.inverse(),
-                if draws.is_some() { None } else { unc.as_ref() },
-                self.settings.position_floor_m,
-                filter.config().visibility_prior,
-            );
+            // either the particles draw the transform from its (dispersed) spread, or the
+            // prior covariances are inflated by it
             self.spread = self
                 .settings
                 .transform_draws
                 .zip(unc)
                 .map(|(k, u)| u.dispersed(k));
+            let mut prior = Prior::new(
+                &self.map,
+                m.map_from_agent.inverse(),
+                if self.spread.is_some() {
+                    None
+                } else {
+                    unc.as_ref()
+                },
+                self.settings.position_floor_m,
+                filter.config().visibility_prior,
+            );
             prior.spread = self.spread;
             filter.set_prior(Some(prior));
             action
