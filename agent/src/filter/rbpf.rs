@@ -243,10 +243,10 @@ fn update_mixture(
     cfg: &FilterConfig,
     merge_now: bool,
 ) -> f64 {
-    // In place: each component's posterior replaces its prior, its log-likelihood is kept in
-    // `weight` for the moment (NaN marks a numerically degenerate update, dropped below).
+    // In place: each component's posterior replaces its prior; its log-likelihood goes to
+    // `lls` (on the stack for up to 32 components; NaN marks a numerically degenerate
+    // update, dropped below).
     let mut max_ll = f64::NEG_INFINITY;
-    let mut any = false;
     let mut lls = [0.0f64; 32];
     let small = comps.len() <= lls.len();
     let mut big: Vec<f64> = Vec::new();
@@ -254,7 +254,6 @@ fn update_mixture(
         let ll = match meas.update(pose, &c.g) {
             Some(u) => {
                 c.g = u.posterior;
-                any = true;
                 u.log_likelihood
             }
             None => f64::NAN,
@@ -268,8 +267,8 @@ fn update_mixture(
             big.push(ll);
         }
     }
-    if !any || !max_ll.is_finite() {
-        // Numerically degenerate: the particle gets no support.
+    if !max_ll.is_finite() {
+        // Numerically degenerate (every update failed): the particle gets no support.
         return -1e3;
     }
     let lls = if small { &lls[..comps.len()] } else { &big[..] };
@@ -284,10 +283,8 @@ fn update_mixture(
         };
         sum += c.weight;
     }
+    // the best component has weight w·exp(0) > 0, so something is kept and sum > 0
     comps.retain(|c| c.weight > 0.0);
-    if comps.is_empty() || sum <= 0.0 {
-        return -1e3;
-    }
     for c in comps.iter_mut() {
         c.weight /= sum;
     }
