@@ -94,6 +94,10 @@ pub struct FilterArgs {
     /// heading random walk of the motion model (rad/√s)
     #[arg(long, default_value_t = FilterConfig::default().heading_noise_rad_per_sqrt_s)]
     pub heading_noise: f64,
+    /// heading noise per turned angle (rad/√rad), added in variance to --heading-noise: the
+    /// wheel-odometry motion model (0: a gyroscope's random walk only)
+    #[arg(long, default_value_t = FilterConfig::default().heading_noise_rad_per_sqrt_rad)]
+    pub heading_noise_per_turn: f64,
     /// speed random walk of the motion model (m/s/√s)
     #[arg(long, default_value_t = FilterConfig::default().speed_noise_mps_per_sqrt_s)]
     pub speed_noise: f64,
@@ -112,6 +116,12 @@ pub struct FilterArgs {
     /// χ² gate (squared Mahalanobis distance) of association candidates
     #[arg(long, default_value_t = FilterConfig::default().association_gate)]
     pub association_gate: f64,
+    /// probability that a detection of a known transmitter is an outlier (0: off)
+    #[arg(long, default_value_t = FilterConfig::default().outlier_probability)]
+    pub outlier_probability: f64,
+    /// density of an outlier over the measurement space (1/(m·rad); ToA-only 1/m)
+    #[arg(long, default_value_t = FilterConfig::default().outlier_density)]
+    pub outlier_density: f64,
 }
 
 impl FilterArgs {
@@ -124,6 +134,20 @@ impl FilterArgs {
         };
         anyhow::ensure!(self.particles >= 1, "--particles must be at least 1");
         anyhow::ensure!(self.association_p0 > 0.0, "--association-p0 must be > 0");
+        anyhow::ensure!(
+            (0.0..1.0).contains(&self.outlier_probability),
+            "--outlier-probability must be in [0, 1), got {}",
+            self.outlier_probability
+        );
+        for (flag, v) in [
+            ("--heading-noise", self.heading_noise),
+            ("--heading-noise-per-turn", self.heading_noise_per_turn),
+            ("--speed-noise", self.speed_noise),
+            ("--speed-std", self.speed_std),
+            ("--outlier-density", self.outlier_density),
+        ] {
+            anyhow::ensure!(v.is_finite() && v >= 0.0, "{flag} must be ≥ 0, got {v}");
+        }
         Ok(FilterConfig {
             particles: self.particles,
             seed,
@@ -131,8 +155,11 @@ impl FilterArgs {
             b_prior,
             initial_speed_mps: self.initial_speed.unwrap_or(initial_speed),
             heading_noise_rad_per_sqrt_s: self.heading_noise,
+            heading_noise_rad_per_sqrt_rad: self.heading_noise_per_turn,
             association_p0: self.association_p0,
             association_gate: self.association_gate,
+            outlier_probability: self.outlier_probability,
+            outlier_density: self.outlier_density,
             speed_noise_mps_per_sqrt_s: self.speed_noise,
             speed_measurement_std_mps: self.speed_std,
             noise: NoiseModel {
@@ -748,8 +775,13 @@ fn crowd_command(a: &CrowdArgs) -> Result<()> {
     Ok(())
 }
 
-/// Filter flags for MRCLAM (README: noise floors measured from the data, line of sight only).
-pub const MRCLAM_RUN_ARGS: [&str; 10] = [
+/// Filter flags for MRCLAM (README: noise floors and the odometry's heading error measured
+/// from the data, line of sight only).
+pub const MRCLAM_RUN_ARGS: [&str; 14] = [
+    "--heading-noise",
+    "0.006",
+    "--heading-noise-per-turn",
+    "0.11",
     "--b-prior",
     "zero",
     "--distance-std",

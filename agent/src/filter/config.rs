@@ -67,6 +67,10 @@ pub struct FilterConfig {
     pub association: Association,
     /// heading random walk of the motion model (rad/√s); von Mises per step with κ = 1/(σ²·Δt)
     pub heading_noise_rad_per_sqrt_s: f64,
+    /// heading noise that grows with the turn the gyro reports (rad/√rad): the variance of a
+    /// step is `σ_t²·Δt + σ_r²·|ω·Δt|` — the wheel-odometry motion model, where the heading
+    /// error comes from turning rather than from time (0 for a gyroscope's pure random walk)
+    pub heading_noise_rad_per_sqrt_rad: f64,
     /// speed random walk when no speed is measured (m/s/√s)
     pub speed_noise_mps_per_sqrt_s: f64,
     /// std of a measured speed (m/s), when the log carries speed
@@ -89,6 +93,13 @@ pub struct FilterConfig {
     pub resample_ess_ratio: f64,
     /// likelihood of "no association" (density in 1/(m·rad); ToA-only: 1/m) — p₀ of seed 002 §5
     pub association_p0: f64,
+    /// probability ε that a detection of a known transmitter is an outlier (a gross error of
+    /// the channel estimator or the detector): the likelihood of a bound track's measurement
+    /// is `(1 − ε)·Σ_c w_c N(z; ẑ_c, P_zz,c) + ε·λ`, and the transmitter is not updated when
+    /// the outlier explains the measurement better; 0 = every detection is taken as it is
+    pub outlier_probability: f64,
+    /// density λ of an outlier over the measurement space (1/(m·rad); ToA-only: 1/m)
+    pub outlier_density: f64,
     /// squared Mahalanobis gate of an association candidate (χ², default 11.8 ≈ 99.7 % for 2 dof)
     pub association_gate: f64,
     /// only old transmitters whose position std (√tr P_xy) is at most this are candidates (m)
@@ -118,6 +129,7 @@ impl Default for FilterConfig {
             seed: 1,
             association: Association::Ml,
             heading_noise_rad_per_sqrt_s: 0.03,
+            heading_noise_rad_per_sqrt_rad: 0.0,
             speed_noise_mps_per_sqrt_s: 0.03,
             speed_measurement_std_mps: 0.05,
             initial_speed_mps: 0.0,
@@ -131,6 +143,8 @@ impl Default for FilterConfig {
             resample_ess_ratio: 0.5,
             association_p0: 0.02,
             association_gate: 11.8,
+            outlier_probability: 0.0,
+            outlier_density: 1.0 / (10.0 * std::f64::consts::TAU),
             association_max_spread_m: 3.0,
             prior_min_existence: 0.5,
             hex_size_m: 2.0,

@@ -234,9 +234,39 @@ fn log_sum_exp(v: impl Iterator<Item = f64> + Clone) -> f64 {
     max + v.map(|x| (x - max).exp()).sum::<f64>().ln()
 }
 
+/// Updates a bound transmitter's mixture with one measurement and returns the log likelihood
+/// of the measurement: ln Σ_c w_c N(z; ẑ_c, P_zz,c) (eq. 45–46), or with an outlier
+/// probability ε > 0 the robust `ln((1 − ε)·L + ε·λ)`, where the mixture keeps its prior state
+/// when the outlier term is the larger (a gross error then neither moves the transmitter nor
+/// leaves only the particles that happen to fit it).
+fn update_mixture(
+    comps: &mut Vec<Comp>,
+    meas: &Meas,
+    pose: &Pose,
+    cfg: &FilterConfig,
+    merge_now: bool,
+) -> f64 {
+    let eps = cfg.outlier_probability;
+    if eps <= 0.0 {
+        return update_mixture_gaussian(comps, meas, pose, cfg, merge_now);
+    }
+    let prior = comps.clone();
+    let ln_in = (1.0 - eps).ln() + update_mixture_gaussian(comps, meas, pose, cfg, merge_now);
+    let ln_out = (eps * cfg.outlier_density).ln();
+    if ln_out > ln_in {
+        *comps = prior;
+    }
+    let (hi, lo) = if ln_in > ln_out {
+        (ln_in, ln_out)
+    } else {
+        (ln_out, ln_in)
+    };
+    hi + (lo - hi).exp().ln_1p()
+}
+
 /// Updates every component of a mixture with one measurement (eq. 46) and returns the
 /// log marginal likelihood ln Σ_c w_c N(z; ẑ_c, P_zz,c) (the factor of eq. 45).
-fn update_mixture(
+fn update_mixture_gaussian(
     comps: &mut Vec<Comp>,
     meas: &Meas,
     pose: &Pose,
@@ -546,7 +576,7 @@ impl Filter {
                             let tx = Arc::make_mut(&mut p.txs[idx as usize]);
                             p.log_w += update_mixture(&mut tx.comps, m, &p.pose, cfg, merge_now);
                             if !updated[idx as usize] {
-                                tx.reliability_m += p.pose.speed * dt;
+                                tx.reliability_m += p.pose.speed.abs() * dt;
                                 updated[idx as usize] = true;
                             }
                         } else {
@@ -690,7 +720,9 @@ impl Particle {
         if dt <= 0.0 {
             return;
         }
-        let sigma_h = cfg.heading_noise_rad_per_sqrt_s * dt.sqrt();
+        let var_h = cfg.heading_noise_rad_per_sqrt_s.powi(2) * dt
+            + cfg.heading_noise_rad_per_sqrt_rad.powi(2) * (gyro * dt).abs();
+        let sigma_h = var_h.sqrt();
         let kappa = if sigma_h > 0.0 {
             1.0 / (sigma_h * sigma_h)
         } else {
@@ -704,7 +736,9 @@ impl Particle {
         };
         let n: f64 = rng.sample(StandardNormal);
         self.pose.speed = match speed {
-            Some(v) => (v + cfg.speed_measurement_std_mps * n).max(0.0),
+            // Unclamped: clipping the noise at zero would bias a standing user forward by
+            // σ·0.4 m/s (0.02 m/s at the default σ — metres over a long stop on real data).
+            Some(v) => v + cfg.speed_measurement_std_mps * n,
             None => (self.pose.speed + cfg.speed_noise_mps_per_sqrt_s * dt.sqrt() * n).max(0.0),
         };
         let h_mid = self.pose.heading + 0.5 * wrap_angle(h_new - self.pose.heading);
@@ -811,7 +845,7 @@ impl Particle {
                 // The association factor already carries the likelihood; update the state only.
                 let _ = update_mixture(&mut tx.comps, m, &self.pose, cfg, merge_now);
                 if !updated[idx] {
-                    tx.reliability_m += self.pose.speed * dt;
+                    tx.reliability_m += self.pose.speed.abs() * dt;
                     updated[idx] = true;
                 }
             }
