@@ -212,6 +212,10 @@ pub struct RunArgs {
     /// prior covariance is inflated by the spread instead
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().transform_draws.unwrap_or(0.0))]
     pub transform_draws: f64,
+    /// `true`: prior transmitters that the match pairs with one of the agent's own are no
+    /// candidates for new tracks (default `false`: every prior transmitter stays one)
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().claim_matched, action = clap::ArgAction::Set)]
+    pub claim_matched: bool,
     /// with --server: fetch and upload, but do not use the prior map in the filter
     #[arg(long)]
     pub ignore_prior: bool,
@@ -559,6 +563,7 @@ pub fn run(cli: Cli) -> Result<()> {
                     match_every_s: a.match_every,
                     position_floor_m: a.prior_floor,
                     transform_draws: (a.transform_draws > 0.0).then_some(a.transform_draws),
+                    claim_matched: a.claim_matched,
                     ..Default::default()
                 };
                 crate::filter::PriorTracker::new(p, settings, a.seed)

@@ -796,6 +796,7 @@ impl Particle {
                 let here = Point2::new(pose.x, pose.y);
                 for (idx, ptx) in prior.txs.iter().enumerate() {
                     if ptx.existence < cfg.prior_min_existence
+                        || ptx.claimed
                         || self.prior_used.contains(&(idx as u32))
                     {
                         continue;

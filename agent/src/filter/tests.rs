@@ -440,3 +440,34 @@ fn outliers_are_not_taken_as_measurements_with_an_outlier_probability() {
     assert!(mean(&robust) < mean(&clean) + 0.1, "{msg}");
     assert!(mean(&plain) > mean(&robust) + 0.15, "{msg}");
 }
+
+#[test]
+fn claimed_prior_transmitters_are_no_candidates() {
+    // The true map in the agent frame as the prior: unclaimed, new tracks take its
+    // transmitters over; with every one claimed (the agent holds them already), none is.
+    use super::prior::Prior;
+    let out = simulate(
+        &indoor(),
+        "user02",
+        SimOptions {
+            seed: 4,
+            toa_only: false,
+        },
+    )
+    .unwrap();
+    let map = out.truth_map(&nalgebra::Isometry2::identity(), 0.3);
+    let used = |claim: bool| {
+        let mut f = Filter::new(cfg(4, 100), true);
+        let mut prior = Prior::new(&map, nalgebra::Isometry2::identity(), None, 0.5, (1.0, 1.0));
+        if claim {
+            prior.claim(map.transmitters().iter().map(|t| t.id.as_str()));
+        }
+        f.set_prior(Some(prior));
+        for s in &out.log.snapshots {
+            f.step(s);
+        }
+        f.prior_transmitters_used()
+    };
+    assert!(used(false) >= 5.0, "unclaimed: {}", used(false));
+    assert_eq!(used(true), 0.0);
+}
