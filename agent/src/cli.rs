@@ -116,6 +116,9 @@ pub struct FilterArgs {
     /// χ² gate (squared Mahalanobis distance) of association candidates
     #[arg(long, default_value_t = FilterConfig::default().association_gate)]
     pub association_gate: f64,
+    /// detections of a new track over which its association is decided (1: at the first)
+    #[arg(long, default_value_t = FilterConfig::default().association_window)]
+    pub association_window: usize,
     /// probability that a detection of a known transmitter is an outlier (0: off)
     #[arg(long, default_value_t = FilterConfig::default().outlier_probability)]
     pub outlier_probability: f64,
@@ -134,6 +137,10 @@ impl FilterArgs {
         };
         anyhow::ensure!(self.particles >= 1, "--particles must be at least 1");
         anyhow::ensure!(self.association_p0 > 0.0, "--association-p0 must be > 0");
+        anyhow::ensure!(
+            self.association_window >= 1,
+            "--association-window must be at least 1"
+        );
         anyhow::ensure!(
             (0.0..1.0).contains(&self.outlier_probability),
             "--outlier-probability must be in [0, 1), got {}",
@@ -158,6 +165,7 @@ impl FilterArgs {
             heading_noise_rad_per_sqrt_rad: self.heading_noise_per_turn,
             association_p0: self.association_p0,
             association_gate: self.association_gate,
+            association_window: self.association_window,
             outlier_probability: self.outlier_probability,
             outlier_density: self.outlier_density,
             speed_noise_mps_per_sqrt_s: self.speed_noise,

@@ -102,6 +102,12 @@ pub struct FilterConfig {
     pub outlier_density: f64,
     /// squared Mahalanobis gate of an association candidate (χ², default 11.8 ≈ 99.7 % for 2 dof)
     pub association_gate: f64,
+    /// detections of a new track over which its association with an old transmitter is
+    /// decided (1 = at its first detection, seed 002 §5): with n > 1 the track starts as a
+    /// tentative new transmitter, the gated old candidates are updated alongside it, and after
+    /// n detections (or when the track ends) each particle compares the evidences
+    /// ln p(z₁..zₙ | new) and ln p(z₁..zₙ | old j)
+    pub association_window: usize,
     /// only old transmitters whose position std (√tr P_xy) is at most this are candidates (m)
     pub association_max_spread_m: f64,
     /// prior-map transmitters are association candidates only with at least this existence
@@ -143,6 +149,7 @@ impl Default for FilterConfig {
             resample_ess_ratio: 0.5,
             association_p0: 0.02,
             association_gate: 11.8,
+            association_window: 1,
             outlier_probability: 0.0,
             outlier_density: 1.0 / (10.0 * std::f64::consts::TAU),
             association_max_spread_m: 3.0,

@@ -47,6 +47,30 @@ pub struct Particle {
     /// this particle's own draw of the prior's transform (a static parameter of the
     /// particle, drawn when the prior is set; None = the transform as matched)
     pub prior_frame: Option<FrameDelta>,
+    /// new tracks whose association is still open (`association_window` > 1)
+    pub pending: Vec<Pending>,
+}
+
+/// A new track on probation: bound to a tentative new transmitter (`slot`) while the gated
+/// old transmitters are updated with its detections alongside.
+#[derive(Debug, Clone)]
+pub struct Pending {
+    track: u64,
+    slot: u32,
+    seen: usize,
+    /// ln p(z₁..z_seen | new transmitter): ln p₀ for the first detection, then the tentative
+    /// transmitter's predictive likelihoods
+    ev_new: f64,
+    cands: Vec<PendingCand>,
+}
+
+#[derive(Debug, Clone)]
+struct PendingCand {
+    old: u32,
+    /// the old transmitter's mixture updated with the track's detections
+    comps: Vec<Comp>,
+    /// ln p(z₁..z_seen | old) including the visibility term of the first detection
+    ev: f64,
 }
 
 /// A small rigid motion of the agent frame, `D(p) = c + R(δθ)·(p − c) + δt`: one particle's
@@ -399,6 +423,7 @@ impl Filter {
                     bound: Vec::new(),
                     prior_used: Vec::new(),
                     prior_frame: None,
+                    pending: Vec::new(),
                 }
             })
             .collect();
@@ -570,14 +595,26 @@ impl Filter {
                 .for_each(|(p, mut rng)| {
                     p.predict(cfg, gyro, speed, dt, &mut rng);
                     p.bound.retain(|(t, _)| current.contains(t));
+                    if !p.pending.is_empty() {
+                        p.resolve_pending(cfg, &current, &mut rng, |_| false);
+                    }
                     let mut updated = vec![false; p.txs.len()];
                     for (track, m, identity) in &meas {
                         if let Some(&(_, idx)) = p.bound.iter().find(|(t, _)| t == track) {
                             let tx = Arc::make_mut(&mut p.txs[idx as usize]);
-                            p.log_w += update_mixture(&mut tx.comps, m, &p.pose, cfg, merge_now);
+                            let ll = update_mixture(&mut tx.comps, m, &p.pose, cfg, merge_now);
+                            p.log_w += ll;
                             if !updated[idx as usize] {
                                 tx.reliability_m += p.pose.speed.abs() * dt;
                                 updated[idx as usize] = true;
+                            }
+                            if let Some(pd) = p.pending.iter_mut().find(|pd| pd.track == *track) {
+                                pd.seen += 1;
+                                pd.ev_new += ll;
+                                for c in &mut pd.cands {
+                                    c.ev +=
+                                        update_mixture(&mut c.comps, m, &p.pose, cfg, merge_now);
+                                }
                             }
                         } else {
                             p.new_track(
@@ -594,6 +631,10 @@ impl Filter {
                                 dt,
                             );
                         }
+                    }
+                    if !p.pending.is_empty() {
+                        let window = cfg.association_window;
+                        p.resolve_pending(cfg, &current, &mut rng, |pd| pd.seen >= window);
                     }
                 });
         }
@@ -807,6 +848,50 @@ impl Particle {
                     }
                 }
             }
+            let own: Vec<(usize, f64)> = cands
+                .iter()
+                .filter_map(|&(c, l)| match c {
+                    Cand::Old(i) => Some((i, l)),
+                    Cand::Prior(_) => None,
+                })
+                .collect();
+            let best_is_prior = cands
+                .iter()
+                .fold((false, ln_p0), |a, &(c, l)| {
+                    if l > a.1 {
+                        (matches!(c, Cand::Prior(_)), l)
+                    } else {
+                        a
+                    }
+                })
+                .0;
+            if cfg.association_window > 1 && !own.is_empty() && !best_is_prior {
+                // decide later: start as a tentative new transmitter, carry the candidates
+                let cands = own
+                    .into_iter()
+                    .map(|(i, l)| {
+                        let mut comps = self.txs[i].comps.clone();
+                        let _ = update_mixture(&mut comps, m, &self.pose, cfg, merge_now);
+                        PendingCand {
+                            old: i as u32,
+                            comps,
+                            ev: l,
+                        }
+                    })
+                    .collect();
+                let (sd, sa) = m.sigmas();
+                let comps = initialize(cfg, &self.pose, m.d(), m.aoa(), sd, sa);
+                self.log_w += ln_p0;
+                self.start_transmitter(identity, comps, track, updated);
+                self.pending.push(Pending {
+                    track,
+                    slot: (self.txs.len() - 1) as u32,
+                    seen: 1,
+                    ev_new: ln_p0,
+                    cands,
+                });
+                return;
+            }
             match cfg.association {
                 Association::Ml => {
                     let best =
@@ -867,6 +952,104 @@ impl Particle {
                     self.log_w += ln_p0;
                 }
                 self.start_transmitter(identity, comps, track, updated);
+            }
+        }
+    }
+
+    /// Decides the open associations for which `due` holds or whose track has ended: ML
+    /// takes the largest evidence among "new" and the candidates still free (not bound to
+    /// another live track), DAS samples in proportion; the particle weight moves from the
+    /// "new" evidence it carried to the chosen one. An associated track continues the old
+    /// transmitter (with the window's detections) and its tentative transmitter is removed.
+    fn resolve_pending(
+        &mut self,
+        cfg: &FilterConfig,
+        current: &BTreeSet<u64>,
+        rng: &mut ChaCha8Rng,
+        due: impl Fn(&Pending) -> bool,
+    ) {
+        let mut k = 0;
+        while k < self.pending.len() {
+            let alive = current.contains(&self.pending[k].track);
+            if alive && !due(&self.pending[k]) {
+                k += 1;
+                continue;
+            }
+            let pd = self.pending.swap_remove(k);
+            let free: Vec<&PendingCand> = pd
+                .cands
+                .iter()
+                .filter(|c| {
+                    !self
+                        .bound
+                        .iter()
+                        .any(|(t, b)| *b == c.old && *t != pd.track && current.contains(t))
+                })
+                .collect();
+            let chosen: Option<&PendingCand> = match cfg.association {
+                Association::Das => {
+                    let total =
+                        log_sum_exp(free.iter().map(|c| c.ev).chain(std::iter::once(pd.ev_new)));
+                    self.log_w += total - pd.ev_new;
+                    let u: f64 = rng.random();
+                    let mut acc = 0.0;
+                    let mut pick = None;
+                    for c in &free {
+                        acc += (c.ev - total).exp();
+                        if u < acc {
+                            pick = Some(*c);
+                            break;
+                        }
+                    }
+                    pick
+                }
+                _ => {
+                    let best = free
+                        .iter()
+                        .copied()
+                        .filter(|c| c.ev > pd.ev_new)
+                        .max_by(|a, b| a.ev.total_cmp(&b.ev));
+                    if let Some(c) = best {
+                        self.log_w += c.ev - pd.ev_new;
+                    }
+                    best
+                }
+            };
+            let Some(c) = chosen else {
+                continue;
+            };
+            let (old, slot) = (c.old as usize, pd.slot as usize);
+            let tentative = self.txs[slot].reliability_m;
+            let prev = &self.txs[old];
+            self.txs[old] = Arc::new(TxState {
+                identity: prev.identity,
+                comps: c.comps.clone(),
+                reliability_m: prev.reliability_m + tentative,
+            });
+            for (t, b) in &mut self.bound {
+                if *t == pd.track {
+                    *b = old as u32;
+                }
+            }
+            self.remove_slot(slot);
+        }
+    }
+
+    /// Removes transmitter `slot`, renumbering what points behind it.
+    fn remove_slot(&mut self, slot: usize) {
+        self.txs.remove(slot);
+        let fix = |i: &mut u32| {
+            if *i as usize > slot {
+                *i -= 1;
+            }
+        };
+        for (_, b) in &mut self.bound {
+            fix(b);
+        }
+        for pd in &mut self.pending {
+            fix(&mut pd.slot);
+            for c in &mut pd.cands {
+                fix(&mut c.old);
             }
         }
     }
