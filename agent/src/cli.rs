@@ -456,6 +456,10 @@ pub struct CooperativeArgs {
     pub token_file: Option<PathBuf>,
     #[arg(long)]
     pub out: PathBuf,
+    /// extra flags for every agent run (crowd and reference), after `--`, e.g.
+    /// `-- --association-window 60`
+    #[arg(last = true)]
+    pub run_args: Vec<String>,
 }
 
 #[derive(Debug, Args)]
@@ -820,8 +824,8 @@ fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
         runs: a.runs,
         first_seed: a.first_seed,
         parallel: a.parallel.max(1),
-        crowd_args: crowd,
-        reference_args: reference,
+        crowd_args: [crowd, a.run_args.clone()].concat(),
+        reference_args: [reference, a.run_args.clone()].concat(),
         out: a.out.clone(),
         progress: true,
     };
