@@ -231,3 +231,30 @@ async fn sigterm_shuts_down_cleanly() {
         "still accepting after SIGTERM"
     );
 }
+
+#[tokio::test]
+async fn sigterm_right_after_start_up_is_still_graceful() {
+    // The signal handlers are installed before the server announces its address; a SIGTERM
+    // sent the moment the address line appears must end it cleanly (exit 0), not by the
+    // signal's default action. (`sigterm_shuts_down_cleanly` once failed that way on a loaded
+    // machine, exit by signal 15, when the handler was installed on the server task's first
+    // poll; this test then caught, in its second round during a full `cargo test`, that the
+    // handlers were still installed just after the address line. On an idle machine the
+    // window is too short to hit.)
+    for round in 0..5 {
+        let dir = tempfile::tempdir().unwrap();
+        let tokens = token_file(dir.path(), &[]);
+        let (mut child, _base) = spawn_server(&dir.path().join("early.db"), &tokens).await;
+        let pid = child.id().unwrap().to_string();
+        let status = std::process::Command::new("kill")
+            .args(["-TERM", &pid])
+            .status()
+            .unwrap();
+        assert!(status.success());
+        let exit = tokio::time::timeout(Duration::from_secs(20), child.wait())
+            .await
+            .unwrap()
+            .unwrap();
+        assert!(exit.success(), "round {round}: {exit:?}");
+    }
+}
