@@ -200,6 +200,20 @@ async fn acknowledged_contributions_survive_sigkill() {
     child.wait().await.unwrap();
 }
 
+/// Sends SIGTERM and waits (at most 20 s) for the process to end.
+async fn sigterm_and_wait(child: &mut Child) -> std::process::ExitStatus {
+    let pid = child.id().unwrap().to_string();
+    let status = std::process::Command::new("kill")
+        .args(["-TERM", &pid])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    tokio::time::timeout(Duration::from_secs(20), child.wait())
+        .await
+        .unwrap()
+        .unwrap()
+}
+
 #[tokio::test]
 async fn sigterm_shuts_down_cleanly() {
     let dir = tempfile::tempdir().unwrap();
@@ -215,16 +229,7 @@ async fn sigterm_shuts_down_cleanly() {
             .status(),
         200
     );
-    let pid = child.id().unwrap().to_string();
-    let status = std::process::Command::new("kill")
-        .args(["-TERM", &pid])
-        .status()
-        .unwrap();
-    assert!(status.success());
-    let exit = tokio::time::timeout(Duration::from_secs(20), child.wait())
-        .await
-        .unwrap()
-        .unwrap();
+    let exit = sigterm_and_wait(&mut child).await;
     assert!(exit.success(), "{exit:?}");
     assert!(
         c.get(format!("{base}/healthz")).send().await.is_err(),
@@ -245,16 +250,7 @@ async fn sigterm_right_after_start_up_is_still_graceful() {
         let dir = tempfile::tempdir().unwrap();
         let tokens = token_file(dir.path(), &[]);
         let (mut child, _base) = spawn_server(&dir.path().join("early.db"), &tokens).await;
-        let pid = child.id().unwrap().to_string();
-        let status = std::process::Command::new("kill")
-            .args(["-TERM", &pid])
-            .status()
-            .unwrap();
-        assert!(status.success());
-        let exit = tokio::time::timeout(Duration::from_secs(20), child.wait())
-            .await
-            .unwrap()
-            .unwrap();
+        let exit = sigterm_and_wait(&mut child).await;
         assert!(exit.success(), "round {round}: {exit:?}");
     }
 }

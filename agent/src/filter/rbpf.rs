@@ -280,12 +280,7 @@ fn update_mixture(
     if ln_out > ln_in {
         *comps = prior;
     }
-    let (hi, lo) = if ln_in > ln_out {
-        (ln_in, ln_out)
-    } else {
-        (ln_out, ln_in)
-    };
-    hi + (lo - hi).exp().ln_1p()
+    log_sum_exp([ln_in, ln_out].into_iter())
 }
 
 /// Updates every component of a mixture with one measurement (eq. 46) and returns the

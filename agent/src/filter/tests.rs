@@ -148,17 +148,22 @@ fn transmitter_behind_the_user_is_tracked_across_the_angle_cut() {
     }
 }
 
-#[test]
-fn association_recognizes_a_regained_transmitter() {
-    // The line of sight is blocked for a while by a short wall, then regained under a new
-    // track id. With association most of the weight binds the new track to the old
-    // transmitter (the new identity's existence is low); without it, both exist.
+/// Walking along a line of sight that a short wall blocks for a while.
+fn regained_los_scene() -> Scenario {
     let blocker = Wall {
         from: [14.0, 4.0],
         to: [18.0, 4.0],
         reflection_loss_db: 3.0,
     };
-    let scene = los_scene(vec![[0.0, 0.0], [30.0, 0.0]], vec![blocker]);
+    los_scene(vec![[0.0, 0.0], [30.0, 0.0]], vec![blocker])
+}
+
+#[test]
+fn association_recognizes_a_regained_transmitter() {
+    // The line of sight is blocked for a while by a short wall, then regained under a new
+    // track id. With association most of the weight binds the new track to the old
+    // transmitter (the new identity's existence is low); without it, both exist.
+    let scene = regained_los_scene();
     let mut mean_existence = [0.0; 2];
     let seeds = [1u64, 2, 3];
     for seed in seeds {
@@ -479,12 +484,7 @@ fn a_deferred_association_still_recognizes_a_regained_transmitter() {
     // that associate, so the new identity's existence falls below one half. (Measured: passes
     // up to a window of 40; at 60 the tentative transmitter, fitted to the drifted particles,
     // out-scores the old one and nothing is associated — the README's trade-off.)
-    let blocker = Wall {
-        from: [14.0, 4.0],
-        to: [18.0, 4.0],
-        reflection_loss_db: 3.0,
-    };
-    let scene = los_scene(vec![[0.0, 0.0], [30.0, 0.0]], vec![blocker]);
+    let scene = regained_los_scene();
     let mut mean_existence = 0.0;
     for seed in [1u64, 2, 3] {
         let out = sim(&scene, seed);
