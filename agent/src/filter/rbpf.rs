@@ -843,27 +843,25 @@ impl Particle {
                     }
                 }
             }
-            let own: Vec<(usize, f64)> = cands
-                .iter()
-                .filter_map(|&(c, l)| match c {
+            let deferred = cfg.association_window > 1
+                && cands.iter().any(|(c, _)| matches!(c, Cand::Old(_)))
+                && !cands
+                    .iter()
+                    .fold((false, ln_p0), |a, &(c, l)| {
+                        if l > a.1 {
+                            (matches!(c, Cand::Prior(_)), l)
+                        } else {
+                            a
+                        }
+                    })
+                    .0;
+            if deferred {
+                let own = cands.iter().filter_map(|&(c, l)| match c {
                     Cand::Old(i) => Some((i, l)),
                     Cand::Prior(_) => None,
-                })
-                .collect();
-            let best_is_prior = cands
-                .iter()
-                .fold((false, ln_p0), |a, &(c, l)| {
-                    if l > a.1 {
-                        (matches!(c, Cand::Prior(_)), l)
-                    } else {
-                        a
-                    }
-                })
-                .0;
-            if cfg.association_window > 1 && !own.is_empty() && !best_is_prior {
+                });
                 // decide later: start as a tentative new transmitter, carry the candidates
                 let cands = own
-                    .into_iter()
                     .map(|(i, l)| {
                         let mut comps = self.txs[i].comps.clone();
                         let _ = update_mixture(&mut comps, m, &self.pose, cfg, merge_now);
