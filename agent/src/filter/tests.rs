@@ -24,6 +24,19 @@ fn los_scene(waypoints: Vec<[f64; 2]>, walls: Vec<Wall>) -> Scenario {
     s
 }
 
+/// A track of the built-in indoor scenario, simulated with AoA.
+fn indoor_sim(track: &str, seed: u64) -> SimOutput {
+    simulate(
+        &indoor(),
+        track,
+        SimOptions {
+            seed,
+            toa_only: false,
+        },
+    )
+    .unwrap()
+}
+
 fn sim(s: &Scenario, seed: u64) -> SimOutput {
     simulate(
         s,
@@ -73,15 +86,7 @@ fn one_transmitter_converges_on_a_known_track() {
 
 #[test]
 fn weights_stay_normalized_and_finite() {
-    let out = simulate(
-        &indoor(),
-        "user07",
-        SimOptions {
-            seed: 4,
-            toa_only: false,
-        },
-    )
-    .unwrap();
+    let out = indoor_sim("user07", 4);
     let mut f = Filter::new(cfg(4, 200), true);
     for snap in out.log.snapshots.iter().take(400) {
         let s = f.step(snap);
@@ -108,15 +113,7 @@ fn weights_stay_normalized_and_finite() {
 
 #[test]
 fn a_run_is_identical_for_any_thread_count() {
-    let out = simulate(
-        &indoor(),
-        "user02",
-        SimOptions {
-            seed: 9,
-            toa_only: false,
-        },
-    )
-    .unwrap();
+    let out = indoor_sim("user02", 9);
     let run_in = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -224,15 +221,7 @@ fn a_correct_prior_map_is_matched_and_lowers_the_error() {
     let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
     let (mut alone, mut with) = (0.0, 0.0);
     for seed in [1u64, 2, 3] {
-        let out = simulate(
-            &indoor(),
-            "user02",
-            SimOptions {
-                seed,
-                toa_only: false,
-            },
-        )
-        .unwrap();
+        let out = indoor_sim("user02", seed);
         let prior = out.truth_map(&map_from_local, 0.3);
         let a = run_filter(&out.log, Some(&out.truth), cfg(seed, 200), false).unwrap();
         let tracker = PriorTracker::new(prior, PriorSettings::default(), seed);
@@ -268,15 +257,7 @@ fn an_unrelated_prior_map_is_never_used() {
     use super::{PriorSettings, PriorTracker};
     use crate::run::run_filter_with_prior;
     use rand::{RngExt, SeedableRng};
-    let out = simulate(
-        &indoor(),
-        "user02",
-        SimOptions {
-            seed: 4,
-            toa_only: false,
-        },
-    )
-    .unwrap();
+    let out = indoor_sim("user02", 4);
     let truth_prior = out.truth_map(&nalgebra::Isometry2::identity(), 0.3);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
     let scrambled: Vec<_> = truth_prior
@@ -451,15 +432,7 @@ fn claimed_prior_transmitters_are_no_candidates() {
     // The true map in the agent frame as the prior: unclaimed, new tracks take its
     // transmitters over; with every one claimed (the agent holds them already), none is.
     use super::prior::Prior;
-    let out = simulate(
-        &indoor(),
-        "user02",
-        SimOptions {
-            seed: 4,
-            toa_only: false,
-        },
-    )
-    .unwrap();
+    let out = indoor_sim("user02", 4);
     let map = out.truth_map(&nalgebra::Isometry2::identity(), 0.3);
     let used = |claim: bool| {
         let mut f = Filter::new(cfg(4, 100), true);
