@@ -4,6 +4,8 @@ use crate::eval::{map_ospa, track_csv};
 use crate::run::RunOutput;
 use anyhow::{Context, Result};
 use echomap_shared::log::{GroundTruth, MeasurementLog};
+use echomap_shared::matching::fit_rigid;
+use nalgebra::Point2;
 use serde::Serialize;
 use std::path::Path;
 
@@ -24,6 +26,12 @@ pub struct RunSummary {
     /// mean error of integrating gyro + speed alone, for logs that carry speed
     pub dead_reckoning_mean_m: Option<f64>,
     pub dead_reckoning_final_m: Option<f64>,
+    /// absolute trajectory error: RMS distance between the estimated (weighted-mean) track and
+    /// the true one after the least-squares rigid alignment of the whole track (Sturm et al.,
+    /// IROS 2012) — the error without the frame's unobservable rotation and offset
+    pub ate_m: f64,
+    /// the same for dead reckoning, for logs that carry speed
+    pub dead_reckoning_ate_m: Option<f64>,
     /// with a prior map: log time (s) of the first accepted match, if any
     pub prior_matched_at_s: Option<f64>,
     /// with a prior map: particle-weighted number of transmitters taken over from it
@@ -42,19 +50,23 @@ pub fn summarize(out: &RunOutput, truth: &GroundTruth, log: &MeasurementLog) -> 
         .filter_map(|r| r.truth.map(|t| t.rmse_m))
         .fold(0.0, f64::max);
     let (ospa, n_est, n_true) = map_ospa(&out.map, truth);
-    let (dr_mean, dr_final) = if log.header.speed {
+    let true_track: Vec<Point2<f64>> = truth.poses.iter().map(|p| Point2::new(p.x, p.y)).collect();
+    let est: Vec<Point2<f64>> = out.rows.iter().map(|r| Point2::new(r.x, r.y)).collect();
+    let (dr_mean, dr_final, dr_ate) = if log.header.speed {
         let dr = crate::mrclam::dead_reckoning(log);
         let e: Vec<f64> = dr
             .iter()
             .zip(&truth.poses)
             .map(|(p, t)| (p.0 - t.x).hypot(p.1 - t.y))
             .collect();
+        let dr: Vec<Point2<f64>> = dr.iter().map(|p| Point2::new(p.0, p.1)).collect();
         (
             Some(e.iter().sum::<f64>() / e.len().max(1) as f64),
             e.last().copied(),
+            Some(absolute_trajectory_error(&dr, &true_track)),
         )
     } else {
-        (None, None)
+        (None, None, None)
     };
     RunSummary {
         snapshots: out.rows.len(),
@@ -69,9 +81,26 @@ pub fn summarize(out: &RunOutput, truth: &GroundTruth, log: &MeasurementLog) -> 
         true_transmitters: n_true,
         dead_reckoning_mean_m: dr_mean,
         dead_reckoning_final_m: dr_final,
+        ate_m: absolute_trajectory_error(&est, &true_track),
+        dead_reckoning_ate_m: dr_ate,
         prior_matched_at_s: out.matches.iter().find(|m| m.accepted).map(|m| m.t),
         prior_transmitters_used: out.had_prior.then(|| out.filter.prior_transmitters_used()),
     }
+}
+
+/// RMS distance between `est` and `truth` (paired by index, the shorter length) after the
+/// least-squares rigid transform of `est` onto `truth`; NaN when no transform can be fitted.
+pub fn absolute_trajectory_error(est: &[Point2<f64>], truth: &[Point2<f64>]) -> f64 {
+    let n = est.len().min(truth.len());
+    let Some(t) = fit_rigid(&est[..n], &truth[..n]) else {
+        return f64::NAN;
+    };
+    let sq: f64 = est[..n]
+        .iter()
+        .zip(&truth[..n])
+        .map(|(e, g)| (t * e - g).norm_squared())
+        .sum();
+    (sq / n as f64).sqrt()
 }
 
 pub fn write_run(
@@ -148,8 +177,53 @@ pub fn print_summary(out: &RunOutput, truth: Option<&GroundTruth>, log: &Measure
                 None => println!("prior map: never matched"),
             }
         }
+        println!(
+            "absolute trajectory error (after rigid alignment): {:.2} m",
+            s.ate_m
+        );
         if let (Some(m), Some(f)) = (s.dead_reckoning_mean_m, s.dead_reckoning_final_m) {
-            println!("dead reckoning (gyro + speed only): mean error {m:.2} m, final {f:.2} m");
+            println!(
+                "dead reckoning (gyro + speed only): mean error {m:.2} m, final {f:.2} m, ATE {:.2} m",
+                s.dead_reckoning_ate_m.unwrap_or(f64::NAN)
+            );
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn track() -> Vec<Point2<f64>> {
+        (0..200)
+            .map(|k| {
+                let a = k as f64 * 0.05;
+                Point2::new(3.0 * a.cos() + 0.1 * k as f64, 2.0 * a.sin())
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_trajectory_error_ignores_a_rigid_motion_of_the_frame() {
+        let truth = track();
+        let moved = nalgebra::Isometry2::new(nalgebra::Vector2::new(4.0, -1.5), 0.7);
+        let est: Vec<_> = truth.iter().map(|p| moved * p).collect();
+        // the plain error is metres, the aligned one nothing
+        assert!((est[100] - truth[100]).norm() > 1.0);
+        assert!(absolute_trajectory_error(&est, &truth) < 1e-9);
+    }
+
+    #[test]
+    fn the_trajectory_error_is_the_rms_of_what_no_rigid_motion_explains() {
+        let truth = track();
+        // alternating ±0.3 m offsets along x: no rigid motion removes them, RMS 0.3 m
+        let est: Vec<_> = truth
+            .iter()
+            .enumerate()
+            .map(|(k, p)| p + nalgebra::Vector2::new(if k % 2 == 0 { 0.3 } else { -0.3 }, 0.0))
+            .collect();
+        let ate = absolute_trajectory_error(&est, &truth);
+        assert!((ate - 0.3).abs() < 0.01, "{ate}");
+        assert!(absolute_trajectory_error(&truth[..1], &truth[..1]).is_nan());
     }
 }

@@ -103,6 +103,7 @@ pub fn run_filter_with_prior(
         bar.inc(1);
     }
     bar.finish_and_clear();
+    filter.finish();
     let map = export_map(&filter)?;
     let had_prior = tracker.is_some();
     Ok(RunOutput {
