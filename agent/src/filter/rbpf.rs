@@ -64,18 +64,6 @@ pub struct Pending {
     cands: Vec<PendingCand>,
 }
 
-impl Pending {
-    /// ln Σ over the hypotheses "new" and every candidate of their evidence.
-    fn log_evidence(&self) -> f64 {
-        log_sum_exp(
-            self.cands
-                .iter()
-                .map(|c| c.ev)
-                .chain(std::iter::once(self.ev_new)),
-        )
-    }
-}
-
 #[derive(Debug, Clone)]
 struct PendingCand {
     old: u32,
@@ -541,7 +529,6 @@ impl Filter {
         r
     }
 
-    /// Processes one snapshot.
     /// Ends the log: every association still open is decided on the detections it has
     /// (`association_window` > 1), as if its track ended here. Deterministic: each particle
     /// draws from its own stream of (seed, particle index).
@@ -562,6 +549,7 @@ impl Filter {
             });
     }
 
+    /// Processes one snapshot.
     pub fn step(&mut self, snap: &Snapshot) -> StepStats {
         let dt = self.prev_t.map(|t| (snap.t - t).max(0.0)).unwrap_or(0.0);
         self.prev_t = Some(snap.t);
@@ -630,24 +618,18 @@ impl Filter {
                         if let Some(&(_, idx)) = p.bound.iter().find(|(t, _)| t == track) {
                             let tx = Arc::make_mut(&mut p.txs[idx as usize]);
                             let ll = update_mixture(&mut tx.comps, m, &p.pose, cfg, merge_now);
+                            p.log_w += ll;
                             if !updated[idx as usize] {
                                 tx.reliability_m += p.pose.speed.abs() * dt;
                                 updated[idx as usize] = true;
                             }
                             if let Some(pd) = p.pending.iter_mut().find(|pd| pd.track == *track) {
-                                // While the association is open the particle is weighted by
-                                // the evidence summed over its hypotheses, so resampling
-                                // already favours poses that agree with an old transmitter.
-                                let before = pd.log_evidence();
                                 pd.seen += 1;
                                 pd.ev_new += ll;
                                 for c in &mut pd.cands {
                                     c.ev +=
                                         update_mixture(&mut c.comps, m, &p.pose, cfg, merge_now);
                                 }
-                                p.log_w += pd.log_evidence() - before;
-                            } else {
-                                p.log_w += ll;
                             }
                         } else {
                             p.new_track(
@@ -912,16 +894,15 @@ impl Particle {
                     .collect();
                 let (sd, sa) = m.sigmas();
                 let comps = initialize(cfg, &self.pose, m.d(), m.aoa(), sd, sa);
+                self.log_w += ln_p0;
                 self.start_transmitter(identity, comps, track, updated);
-                let pd = Pending {
+                self.pending.push(Pending {
                     track,
                     slot: (self.txs.len() - 1) as u32,
                     seen: 1,
                     ev_new: ln_p0,
                     cands,
-                };
-                self.log_w += pd.log_evidence();
-                self.pending.push(pd);
+                });
                 return;
             }
             match cfg.association {
@@ -1018,14 +999,11 @@ impl Particle {
                         .any(|(t, b)| *b == c.old && *t != pd.track && current.contains(t))
                 })
                 .collect();
-            // The weight carries the evidence summed over all hypotheses; it moves to the
-            // decided one (ML) or to the hypotheses still open to this track (DAS).
-            let carried = pd.log_evidence();
             let chosen: Option<&PendingCand> = match cfg.association {
                 Association::Das => {
                     let total =
                         log_sum_exp(free.iter().map(|c| c.ev).chain(std::iter::once(pd.ev_new)));
-                    self.log_w += total - carried;
+                    self.log_w += total - pd.ev_new;
                     let u: f64 = rng.random();
                     let mut acc = 0.0;
                     let mut pick = None;
@@ -1044,7 +1022,9 @@ impl Particle {
                         .copied()
                         .filter(|c| c.ev > pd.ev_new)
                         .max_by(|a, b| a.ev.total_cmp(&b.ev));
-                    self.log_w += best.map_or(pd.ev_new, |c| c.ev) - carried;
+                    if let Some(c) = best {
+                        self.log_w += c.ev - pd.ev_new;
+                    }
                     best
                 }
             };
