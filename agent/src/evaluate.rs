@@ -23,6 +23,8 @@ pub struct Curves {
     pub rmse: Vec<f64>,
     pub final_mae: Vec<f64>,
     pub mean_mae: Vec<f64>,
+    /// per run: absolute trajectory error (m) of the whole track, see `RunSummary::ate_m`
+    pub ate_m: Vec<f64>,
     pub wall_s: Vec<f64>,
 }
 
@@ -45,6 +47,7 @@ impl Curves {
                 .iter()
                 .map(|r| r.iter().map(|x| x.1).sum::<f64>() / r.len().max(1) as f64)
                 .collect(),
+            ate_m: Vec::new(),
             wall_s,
         };
         #[allow(clippy::needless_range_loop)] // k indexes every run at once
@@ -59,6 +62,12 @@ impl Curves {
                 .push((err.iter().map(|e| e * e).sum::<f64>() / err.len() as f64).sqrt());
         }
         c
+    }
+
+    /// The same curves with the per-run absolute trajectory errors.
+    pub fn with_ate(mut self, ate_m: Vec<f64>) -> Self {
+        self.ate_m = ate_m;
+        self
     }
 
     pub fn csv(&self) -> String {
@@ -145,6 +154,7 @@ pub fn evaluate(a: &EvaluateArgs) -> Result<()> {
     let mut all = Vec::new();
     for method in methods {
         let mut runs = Vec::new();
+        let mut ate = Vec::new();
         let mut wall = Vec::new();
         for seed in a.first_seed..a.first_seed + a.seeds {
             bar.set_message(format!("{method:?} seed {seed}"));
@@ -162,6 +172,7 @@ pub fn evaluate(a: &EvaluateArgs) -> Result<()> {
             let start = std::time::Instant::now();
             let out = run_filter(&sim.log, Some(&sim.truth), cfg, false)?;
             wall.push(start.elapsed().as_secs_f64());
+            ate.push(crate::output::track_ate(&out.rows, &sim.truth));
             runs.push(
                 out.rows
                     .iter()
@@ -171,15 +182,16 @@ pub fn evaluate(a: &EvaluateArgs) -> Result<()> {
             bar.inc(1);
         }
         let label = format!("{method:?}").to_lowercase();
-        let c = Curves::from_runs(label, &runs, wall);
+        let c = Curves::from_runs(label, &runs, wall).with_ate(ate);
         println!(
-            "{:>4}: max RMSE {:.2} m, max mean-MAE {:.2} m, final MAE median {:.2} m (5th {:.2}, 95th {:.2}), wall {:.1} s/run",
+            "{:>4}: max RMSE {:.2} m, max mean-MAE {:.2} m, final MAE median {:.2} m (5th {:.2}, 95th {:.2}), ATE median {:.2} m, wall {:.1} s/run",
             c.label,
             Curves::max(&c.rmse),
             Curves::max(&c.mae_mean),
             percentile(&c.final_mae, 0.5),
             percentile(&c.final_mae, 0.05),
             percentile(&c.final_mae, 0.95),
+            percentile(&c.ate_m, 0.5),
             c.wall_s.iter().sum::<f64>() / c.wall_s.len().max(1) as f64
         );
         all.push(c);

@@ -33,6 +33,26 @@ pub struct ExperimentSpec {
 /// One evaluated configuration: its label and the per-run `(traveled, mae, err)` series.
 type Series = Vec<(f64, f64, f64)>;
 
+/// One reference run: its error series and its absolute trajectory error (m).
+type Reference = (Series, f64);
+
+/// `ate_m` of a run directory's `summary.json`.
+fn read_ate(dir: &Path) -> Result<f64> {
+    let path = dir.join("summary.json");
+    let text =
+        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+    // NaN (no transform could be fitted) is written as null
+    Ok(v.get("ate_m").and_then(|x| x.as_f64()).unwrap_or(f64::NAN))
+}
+
+/// Curves of a configuration's reference runs, with their trajectory errors.
+fn curves_of(label: String, refs: Vec<Reference>) -> Curves {
+    let (runs, ate): (Vec<Series>, Vec<f64>) = refs.into_iter().unzip();
+    Curves::from_runs(label, &runs, Vec::new()).with_ate(ate)
+}
+
 fn read_track(dir: &Path) -> Result<Series> {
     let path = dir.join("track.csv");
     let text =
@@ -146,14 +166,14 @@ fn run_references(
     reference: &User,
     jobs: &[(String, Option<PathBuf>)],
     dir: &Path,
-) -> Vec<Result<Series>> {
+) -> Vec<Result<Reference>> {
     crowd::in_order(jobs, spec.parallel, |(label, prior)| {
         let d = dir.join(format!("reference-{label}"));
         let mut args = crowd::run_args(reference, &d, &spec.reference_args);
         if let Some(p) = prior {
             args.extend(["--prior".into(), p.display().to_string()]);
         }
-        crowd::run_process(&spec.exe, &args, &d).and_then(|_| read_track(&d))
+        crowd::run_process(&spec.exe, &args, &d).and_then(|_| Ok((read_track(&d)?, read_ate(&d)?)))
     })
 }
 
@@ -168,11 +188,11 @@ fn label_of(c: usize) -> String {
 /// Final and mean MAE per configuration: a Markdown table.
 fn results_table(all: &[Curves], header: &str) -> String {
     let mut s = format!(
-        "| {header} | runs | final MAE median (m) | final 5th–95th (m) | mean MAE median (m) | mean MAE mean (m) |\n| --- | --- | --- | --- | --- | --- |\n"
+        "| {header} | runs | final MAE median (m) | final 5th–95th (m) | mean MAE median (m) | mean MAE mean (m) | ATE median (m) |\n| --- | --- | --- | --- | --- | --- | --- |\n"
     );
     for c in all {
         s.push_str(&format!(
-            "| {} | {} | {:.2} | {:.2}–{:.2} | {:.2} | {:.2} |\n",
+            "| {} | {} | {:.2} | {:.2}–{:.2} | {:.2} | {:.2} | {:.2} |\n",
             c.label,
             c.final_mae.len(),
             percentile(&c.final_mae, 0.5),
@@ -180,6 +200,7 @@ fn results_table(all: &[Curves], header: &str) -> String {
             percentile(&c.final_mae, 0.95),
             percentile(&c.mean_mae, 0.5),
             c.mean_mae.iter().sum::<f64>() / c.mean_mae.len().max(1) as f64,
+            percentile(&c.ate_m, 0.5),
         ));
     }
     s
@@ -201,7 +222,7 @@ pub fn cooperative_scenario(
         crowd_tracks.len()
     );
     let s = Server::open(spec)?;
-    let mut per_c: Vec<Vec<Series>> = vec![Vec::new(); contributors.len()];
+    let mut per_c: Vec<Vec<Reference>> = vec![Vec::new(); contributors.len()];
     for run in 0..spec.runs {
         let seed = spec.first_seed + run;
         let dir = spec.out.join(format!("run-seed{seed}"));
@@ -253,20 +274,21 @@ pub fn cooperative_scenario(
             .into_iter()
             .enumerate()
         {
-            let series = r.with_context(|| format!("reference run {} (seed {seed})", jobs[k].0))?;
+            let (series, ate) =
+                r.with_context(|| format!("reference run {} (seed {seed})", jobs[k].0))?;
             println!(
-                "  {:>11}: final MAE {:.2} m",
+                "  {:>11}: final MAE {:.2} m, ATE {ate:.2} m",
                 jobs[k].0,
                 series.last().map(|x| x.1).unwrap_or(f64::NAN)
             );
-            per_c[k].push(series);
+            per_c[k].push((series, ate));
         }
     }
     s.close()?;
     let all: Vec<Curves> = contributors
         .iter()
         .zip(per_c)
-        .map(|(&c, runs)| Curves::from_runs(label_of(c), &runs, Vec::new()))
+        .map(|(&c, runs)| curves_of(label_of(c), runs))
         .collect();
     finish(
         &all,
@@ -364,12 +386,8 @@ pub fn cooperative_mrclam(
             alone.push(r.next().expect("two jobs")?);
             with.push(r.next().expect("two jobs")?);
         }
-        let a = Curves::from_runs(format!("robot{reference_robot}-alone"), &alone, Vec::new());
-        let w = Curves::from_runs(
-            format!("robot{reference_robot}-with-others"),
-            &with,
-            Vec::new(),
-        );
+        let a = curves_of(format!("robot{reference_robot}-alone"), alone);
+        let w = curves_of(format!("robot{reference_robot}-with-others"), with);
         out.push((*reference_robot, a, w));
     }
     s.close()?;

@@ -50,8 +50,7 @@ pub fn summarize(out: &RunOutput, truth: &GroundTruth, log: &MeasurementLog) -> 
         .filter_map(|r| r.truth.map(|t| t.rmse_m))
         .fold(0.0, f64::max);
     let (ospa, n_est, n_true) = map_ospa(&out.map, truth);
-    let true_track: Vec<Point2<f64>> = truth.poses.iter().map(|p| Point2::new(p.x, p.y)).collect();
-    let est: Vec<Point2<f64>> = out.rows.iter().map(|r| Point2::new(r.x, r.y)).collect();
+    let true_track = truth_points(truth);
     let (dr_mean, dr_final, dr_ate) = if log.header.speed {
         let dr = crate::mrclam::dead_reckoning(log);
         let e: Vec<f64> = dr
@@ -81,11 +80,21 @@ pub fn summarize(out: &RunOutput, truth: &GroundTruth, log: &MeasurementLog) -> 
         true_transmitters: n_true,
         dead_reckoning_mean_m: dr_mean,
         dead_reckoning_final_m: dr_final,
-        ate_m: absolute_trajectory_error(&est, &true_track),
+        ate_m: track_ate(&out.rows, truth),
         dead_reckoning_ate_m: dr_ate,
         prior_matched_at_s: out.matches.iter().find(|m| m.accepted).map(|m| m.t),
         prior_transmitters_used: out.had_prior.then(|| out.filter.prior_transmitters_used()),
     }
+}
+
+fn truth_points(truth: &GroundTruth) -> Vec<Point2<f64>> {
+    truth.poses.iter().map(|p| Point2::new(p.x, p.y)).collect()
+}
+
+/// Absolute trajectory error of a run's weighted-mean track (one row per ground-truth pose).
+pub fn track_ate(rows: &[crate::eval::TrackRow], truth: &GroundTruth) -> f64 {
+    let est: Vec<Point2<f64>> = rows.iter().map(|r| Point2::new(r.x, r.y)).collect();
+    absolute_trajectory_error(&est, &truth_points(truth))
 }
 
 /// RMS distance between `est` and `truth` (paired by index, the shorter length) after the
