@@ -185,7 +185,7 @@ fn label_of(c: usize) -> String {
     }
 }
 
-/// Final and mean MAE per configuration: a Markdown table.
+/// Final and mean MAE and the median ATE per configuration: a Markdown table.
 fn results_table(all: &[Curves], header: &str) -> String {
     let mut s = format!(
         "| {header} | runs | final MAE median (m) | final 5th–95th (m) | mean MAE median (m) | mean MAE mean (m) | ATE median (m) |\n| --- | --- | --- | --- | --- | --- | --- |\n"
