@@ -119,6 +119,10 @@ pub struct FilterArgs {
     /// detections of a new track over which its association is decided (1: at the first)
     #[arg(long, default_value_t = FilterConfig::default().association_window)]
     pub association_window: usize,
+    /// detections over which a new track's association is decided when a prior-map
+    /// transmitter is among its candidates (1: at the first)
+    #[arg(long, default_value_t = FilterConfig::default().prior_association_window)]
+    pub prior_association_window: usize,
     /// probability that a detection of a known transmitter is an outlier (0: off)
     #[arg(long, default_value_t = FilterConfig::default().outlier_probability)]
     pub outlier_probability: f64,
@@ -140,6 +144,10 @@ impl FilterArgs {
         anyhow::ensure!(
             self.association_window >= 1,
             "--association-window must be at least 1"
+        );
+        anyhow::ensure!(
+            self.prior_association_window >= 1,
+            "--prior-association-window must be at least 1"
         );
         anyhow::ensure!(
             (0.0..1.0).contains(&self.outlier_probability),
@@ -166,6 +174,7 @@ impl FilterArgs {
             association_p0: self.association_p0,
             association_gate: self.association_gate,
             association_window: self.association_window,
+            prior_association_window: self.prior_association_window,
             outlier_probability: self.outlier_probability,
             outlier_density: self.outlier_density,
             speed_noise_mps_per_sqrt_s: self.speed_noise,

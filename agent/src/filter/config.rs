@@ -108,6 +108,9 @@ pub struct FilterConfig {
     /// n detections (or when the track ends) each particle compares the evidences
     /// ln p(z₁..zₙ | new) and ln p(z₁..zₙ | old j)
     pub association_window: usize,
+    /// detections over which a new track's association is decided when a prior-map
+    /// transmitter is among its candidates (1 = at its first detection, as for old ones)
+    pub prior_association_window: usize,
     /// only old transmitters whose position std (√tr P_xy) is at most this are candidates (m)
     pub association_max_spread_m: f64,
     /// prior-map transmitters are association candidates only with at least this existence
@@ -150,6 +153,7 @@ impl Default for FilterConfig {
             association_p0: 0.02,
             association_gate: 11.8,
             association_window: 1,
+            prior_association_window: 30,
             outlier_probability: 0.0,
             outlier_density: 1.0 / (10.0 * std::f64::consts::TAU),
             association_max_spread_m: 3.0,

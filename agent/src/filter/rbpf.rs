@@ -52,12 +52,14 @@ pub struct Particle {
 }
 
 /// A new track on probation: bound to a tentative new transmitter (`slot`) while the gated
-/// old transmitters are updated with its detections alongside.
+/// old and prior-map transmitters are updated with its detections alongside.
 #[derive(Debug, Clone)]
 pub struct Pending {
     track: u64,
     slot: u32,
     seen: usize,
+    /// detections after which the association is decided
+    window: usize,
     /// ln p(z₁..z_seen | new transmitter): ln p₀ for the first detection, then the tentative
     /// transmitter's predictive likelihoods
     ev_new: f64,
@@ -66,11 +68,20 @@ pub struct Pending {
 
 #[derive(Debug, Clone)]
 struct PendingCand {
-    old: u32,
-    /// the old transmitter's mixture updated with the track's detections
+    source: CandSource,
+    /// the candidate's mixture (agent frame) updated with the track's detections
     comps: Vec<Comp>,
-    /// ln p(z₁..z_seen | old) including the visibility term of the first detection
+    /// ln p(z₁..z_seen | candidate) including the visibility term of the first detection
     ev: f64,
+}
+
+/// What a pending track may turn out to be.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum CandSource {
+    /// one of the particle's own transmitters (slot)
+    Old(u32),
+    /// a prior-map transmitter (index into the prior)
+    Prior(u32),
 }
 
 /// A small rigid motion of the agent frame, `D(p) = c + R(δθ)·(p − c) + δt`: one particle's
@@ -648,8 +659,7 @@ impl Filter {
                         }
                     }
                     if !p.pending.is_empty() {
-                        let window = cfg.association_window;
-                        p.resolve_pending(cfg, &current, &mut rng, |pd| pd.seen >= window);
+                        p.resolve_pending(cfg, &current, &mut rng, |pd| pd.seen >= pd.window);
                     }
                 });
         }
@@ -863,33 +873,59 @@ impl Particle {
                     }
                 }
             }
-            let deferred = cfg.association_window > 1
+            let best_is_prior = cands
+                .iter()
+                .fold((false, ln_p0), |a, &(c, l)| {
+                    if l > a.1 {
+                        (matches!(c, Cand::Prior(_)), l)
+                    } else {
+                        a
+                    }
+                })
+                .0;
+            let own_deferred = cfg.association_window > 1
                 && cands.iter().any(|(c, _)| matches!(c, Cand::Old(_)))
-                && !cands
-                    .iter()
-                    .fold((false, ln_p0), |a, &(c, l)| {
-                        if l > a.1 {
-                            (matches!(c, Cand::Prior(_)), l)
-                        } else {
-                            a
-                        }
-                    })
-                    .0;
-            if deferred {
-                let own = cands.iter().filter_map(|&(c, l)| match c {
-                    Cand::Old(i) => Some((i, l)),
-                    Cand::Prior(_) => None,
-                });
+                && !best_is_prior;
+            // A prior map holds many transmitters: one detection's distance and angle fit some
+            // unrelated one on the same ray (its clock offset making up the range) often
+            // enough, and a copy taken over that way pins the track to a wrong place. With a
+            // prior window the decision waits until the detections have moved along the track.
+            let prior_deferred = cfg.prior_association_window > 1
+                && cands.iter().any(|(c, _)| matches!(c, Cand::Prior(_)));
+            if own_deferred || prior_deferred {
+                let window = if prior_deferred {
+                    cfg.association_window.max(cfg.prior_association_window)
+                } else {
+                    cfg.association_window
+                };
+                let prior_pose = self.prior_pose();
                 // decide later: start as a tentative new transmitter, carry the candidates
-                let cands = own
-                    .map(|(i, l)| {
-                        let mut comps = self.txs[i].comps.clone();
-                        let _ = update_mixture(&mut comps, m, &self.pose, cfg, merge_now);
-                        PendingCand {
-                            old: i as u32,
-                            comps,
-                            ev: l,
+                let cands = cands
+                    .iter()
+                    .filter_map(|&(c, l)| match c {
+                        Cand::Old(i) => {
+                            let mut comps = self.txs[i].comps.clone();
+                            let _ = update_mixture(&mut comps, m, &self.pose, cfg, merge_now);
+                            Some(PendingCand {
+                                source: CandSource::Old(i as u32),
+                                comps,
+                                ev: l,
+                            })
                         }
+                        Cand::Prior(i) if prior_deferred => {
+                            let prior = prior.expect("a prior candidate needs a prior");
+                            let mut comps = prior.txs[i].comps.clone();
+                            let _ = update_mixture(&mut comps, m, &prior_pose, cfg, merge_now);
+                            if let Some(d) = &self.prior_frame {
+                                comps = d.apply(&comps);
+                            }
+                            Some(PendingCand {
+                                source: CandSource::Prior(i as u32),
+                                comps,
+                                ev: l,
+                            })
+                        }
+                        Cand::Prior(_) => None,
                     })
                     .collect();
                 let (sd, sa) = m.sigmas();
@@ -900,6 +936,7 @@ impl Particle {
                     track,
                     slot: (self.txs.len() - 1) as u32,
                     seen: 1,
+                    window,
                     ev_new: ln_p0,
                     cands,
                 });
@@ -992,11 +1029,12 @@ impl Particle {
             let free: Vec<&PendingCand> = pd
                 .cands
                 .iter()
-                .filter(|c| {
-                    !self
+                .filter(|c| match c.source {
+                    CandSource::Old(old) => !self
                         .bound
                         .iter()
-                        .any(|(t, b)| *b == c.old && *t != pd.track && current.contains(t))
+                        .any(|(t, b)| *b == old && *t != pd.track && current.contains(t)),
+                    CandSource::Prior(idx) => !self.prior_used.contains(&idx),
                 })
                 .collect();
             let chosen: Option<&PendingCand> = match cfg.association {
@@ -1031,7 +1069,21 @@ impl Particle {
             let Some(c) = chosen else {
                 continue;
             };
-            let (old, slot) = (c.old as usize, pd.slot as usize);
+            let slot = pd.slot as usize;
+            let old = match c.source {
+                CandSource::Old(old) => old as usize,
+                CandSource::Prior(idx) => {
+                    // the tentative transmitter continues from the prior's copy
+                    let prev = &self.txs[slot];
+                    self.txs[slot] = Arc::new(TxState {
+                        identity: prev.identity,
+                        comps: c.comps.clone(),
+                        reliability_m: prev.reliability_m,
+                    });
+                    self.prior_used.push(idx);
+                    continue;
+                }
+            };
             let tentative = self.txs[slot].reliability_m;
             let prev = &self.txs[old];
             self.txs[old] = Arc::new(TxState {
@@ -1062,7 +1114,9 @@ impl Particle {
         for pd in &mut self.pending {
             fix(&mut pd.slot);
             for c in &mut pd.cands {
-                fix(&mut c.old);
+                if let CandSource::Old(old) = &mut c.source {
+                    fix(old);
+                }
             }
         }
     }

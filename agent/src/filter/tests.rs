@@ -483,3 +483,81 @@ fn a_deferred_association_still_recognizes_a_regained_transmitter() {
         );
     }
 }
+
+#[test]
+fn a_prior_decoy_on_the_first_ray_is_rejected_over_the_prior_window() {
+    // The prior holds one transmitter that fits the first detection exactly — on its ray at
+    // half the range, the clock offset making up the rest — but is not the one seen. Decided
+    // at the first detection (window 1) every particle takes it over; decided over the
+    // default window the detections that follow, taken as the user walks past, expose it and
+    // no particle keeps it. The transmitter ends up where the truth is only in the second case.
+    use super::prior::Prior;
+    use echomap_shared::map::Transmitter;
+    use echomap_shared::mixture::Component;
+    use nalgebra::{Matrix3, Vector3};
+    let scene = los_scene(vec![[0.0, 0.0], [20.0, 0.0], [20.0, 15.0]], vec![]);
+    for seed in [1u64, 2, 3] {
+        let out = sim(&scene, seed);
+        let first = out
+            .log
+            .snapshots
+            .iter()
+            .find(|s| !s.components.is_empty())
+            .unwrap();
+        let pose = out
+            .truth
+            .poses
+            .iter()
+            .min_by(|a, b| (a.t - first.t).abs().total_cmp(&(b.t - first.t).abs()))
+            .unwrap();
+        let m = &first.components[0];
+        let ray = pose.heading_rad + m.aoa.unwrap();
+        let r = 0.5 * m.d;
+        let decoy = Transmitter {
+            id: "decoy".into(),
+            components: vec![Component::new(
+                1.0,
+                Vector3::new(pose.x + r * ray.cos(), pose.y + r * ray.sin(), m.d - r),
+                Matrix3::from_diagonal(&Vector3::new(0.09, 0.09, 0.09)),
+            )],
+            existence: 1.0,
+            reliability_m: 20.0,
+            visibility: Default::default(),
+        };
+        let map = echomap_shared::TransmitterMap::new(2.0, vec![decoy]).unwrap();
+        let run = |window: usize| {
+            let c = FilterConfig {
+                prior_association_window: window,
+                ..cfg(seed, 300)
+            };
+            let mut f = Filter::new(c, true);
+            f.set_prior(Some(Prior::new(
+                &map,
+                nalgebra::Isometry2::identity(),
+                None,
+                0.0,
+                (1.0, 1.0),
+            )));
+            for s in &out.log.snapshots {
+                f.step(s);
+            }
+            f.finish();
+            let used = f.prior_transmitters_used();
+            let exported = export_map(&f).unwrap();
+            let (mean, _) = exported.transmitters()[0].moments();
+            let truth = out.truth.transmitters[0].state;
+            (used, (mean.x - truth[0]).hypot(mean.y - truth[1]))
+        };
+        let (used_now, err_now) = run(1);
+        let (used_later, err_later) = run(FilterConfig::default().prior_association_window);
+        assert!(used_now > 0.9, "seed {seed}: window 1 used {used_now}");
+        assert!(
+            used_later < 0.1,
+            "seed {seed}: default window used {used_later}"
+        );
+        assert!(
+            err_later < 1.0 && err_now > err_later,
+            "seed {seed}: transmitter error {err_now:.2} m (window 1), {err_later:.2} m (default)"
+        );
+    }
+}
