@@ -120,9 +120,11 @@ pub struct FilterArgs {
     #[arg(long, default_value_t = FilterConfig::default().association_window)]
     pub association_window: usize,
     /// detections over which a new track's association is decided when a prior-map
-    /// transmitter is among its candidates (1: at the first)
-    #[arg(long, default_value_t = FilterConfig::default().prior_association_window)]
-    pub prior_association_window: usize,
+    /// transmitter is among its candidates (1: at the first); default 30 with `--b-prior
+    /// uniform`, 1 with `--b-prior zero` (no clock offset, so no unrelated transmitter on the
+    /// ray fits a detection's range)
+    #[arg(long)]
+    pub prior_association_window: Option<usize>,
     /// probability that a detection of a known transmitter is an outlier (0: off)
     #[arg(long, default_value_t = FilterConfig::default().outlier_probability)]
     pub outlier_probability: f64,
@@ -146,9 +148,13 @@ impl FilterArgs {
             "--association-window must be at least 1"
         );
         anyhow::ensure!(
-            self.prior_association_window >= 1,
+            self.prior_association_window.is_none_or(|n| n >= 1),
             "--prior-association-window must be at least 1"
         );
+        let prior_association_window = self.prior_association_window.unwrap_or(match b_prior {
+            BPrior::Uniform => FilterConfig::default().prior_association_window,
+            BPrior::Zero { .. } => 1,
+        });
         anyhow::ensure!(
             (0.0..1.0).contains(&self.outlier_probability),
             "--outlier-probability must be in [0, 1), got {}",
@@ -174,7 +180,7 @@ impl FilterArgs {
             association_p0: self.association_p0,
             association_gate: self.association_gate,
             association_window: self.association_window,
-            prior_association_window: self.prior_association_window,
+            prior_association_window,
             outlier_probability: self.outlier_probability,
             outlier_density: self.outlier_density,
             speed_noise_mps_per_sqrt_s: self.speed_noise,
@@ -877,4 +883,34 @@ fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
         _ => bail!("--dataset takes KIND DIR"),
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Parser)]
+    struct Wrapper {
+        #[command(flatten)]
+        filter: FilterArgs,
+    }
+
+    fn prior_window(args: &[&str]) -> Result<usize> {
+        let w = Wrapper::try_parse_from(std::iter::once("t").chain(args.iter().copied()))?;
+        Ok(w.filter.config(1, 0.0)?.prior_association_window)
+    }
+
+    #[test]
+    fn the_prior_association_window_follows_the_b_prior_unless_given() {
+        let default = FilterConfig::default().prior_association_window;
+        assert!(default > 1);
+        assert_eq!(prior_window(&[]).unwrap(), default);
+        assert_eq!(prior_window(&["--b-prior", "zero"]).unwrap(), 1);
+        assert_eq!(
+            prior_window(&["--b-prior", "zero", "--prior-association-window", "12"]).unwrap(),
+            12
+        );
+        let err = prior_window(&["--prior-association-window", "0"]).unwrap_err();
+        assert!(err.to_string().contains("at least 1"), "{err}");
+    }
 }

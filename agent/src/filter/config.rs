@@ -109,7 +109,10 @@ pub struct FilterConfig {
     /// ln p(z₁..zₙ | new) and ln p(z₁..zₙ | old j)
     pub association_window: usize,
     /// detections over which a new track's association is decided when a prior-map
-    /// transmitter is among its candidates (1 = at its first detection, as for old ones)
+    /// transmitter is among its candidates (1 = at its first detection, as for old ones).
+    /// One detection (a distance and an angle) cannot tell a prior transmitter from an
+    /// unrelated one on the same ray whose clock offset makes up the range; the detections
+    /// that follow as the user moves can. The CLI uses 1 when b is known to be zero
     pub prior_association_window: usize,
     /// only old transmitters whose position std (√tr P_xy) is at most this are candidates (m)
     pub association_max_spread_m: f64,
