@@ -898,7 +898,6 @@ impl Particle {
                 } else {
                     cfg.association_window
                 };
-                let prior_pose = self.prior_pose();
                 // decide later: start as a tentative new transmitter, carry the candidates
                 let cands = cands
                     .iter()
@@ -912,19 +911,11 @@ impl Particle {
                                 ev: l,
                             })
                         }
-                        Cand::Prior(i) if prior_deferred => {
-                            let prior = prior.expect("a prior candidate needs a prior");
-                            let mut comps = prior.txs[i].comps.clone();
-                            let _ = update_mixture(&mut comps, m, &prior_pose, cfg, merge_now);
-                            if let Some(d) = &self.prior_frame {
-                                comps = d.apply(&comps);
-                            }
-                            Some(PendingCand {
-                                source: CandSource::Prior(i as u32),
-                                comps,
-                                ev: l,
-                            })
-                        }
+                        Cand::Prior(i) if prior_deferred => Some(PendingCand {
+                            source: CandSource::Prior(i as u32),
+                            comps: self.prior_copy(prior, i, m, cfg, merge_now),
+                            ev: l,
+                        }),
                         Cand::Prior(_) => None,
                     })
                     .collect();
@@ -986,12 +977,7 @@ impl Particle {
                 }
             }
             Some(Cand::Prior(pidx)) => {
-                let prior = prior.expect("a prior candidate needs a prior");
-                let mut comps = prior.txs[pidx].comps.clone();
-                let _ = update_mixture(&mut comps, m, &self.prior_pose(), cfg, merge_now);
-                if let Some(d) = &self.prior_frame {
-                    comps = d.apply(&comps);
-                }
+                let comps = self.prior_copy(prior, pidx, m, cfg, merge_now);
                 self.prior_used.push(pidx as u32);
                 self.start_transmitter(identity, comps, track, updated);
             }
@@ -1118,6 +1104,25 @@ impl Particle {
                     fix(old);
                 }
             }
+        }
+    }
+
+    /// Prior transmitter `idx` updated with the detection `m` and placed in this particle's
+    /// frame: the mixture a track starts from when it is taken over.
+    fn prior_copy(
+        &self,
+        prior: Option<&Prior>,
+        idx: usize,
+        m: &Meas,
+        cfg: &FilterConfig,
+        merge_now: bool,
+    ) -> Vec<Comp> {
+        let prior = prior.expect("a prior candidate needs a prior");
+        let mut comps = prior.txs[idx].comps.clone();
+        let _ = update_mixture(&mut comps, m, &self.prior_pose(), cfg, merge_now);
+        match &self.prior_frame {
+            Some(d) => d.apply(&comps),
+            None => comps,
         }
     }
 
