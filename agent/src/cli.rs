@@ -235,6 +235,10 @@ pub struct RunArgs {
     /// prior covariance is inflated by the spread instead
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().transform_draws.unwrap_or(0.0))]
     pub transform_draws: f64,
+    /// seconds at the start of the log whose detections anchor the matched transform (the
+    /// pose is still known in the local frame then; 0: the match's own fit is used)
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().anchor_window_s)]
+    pub prior_anchor_s: f64,
     /// `true`: prior transmitters that the match pairs with one of the agent's own are no
     /// candidates for new tracks (default `false`: every prior transmitter stays one)
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().claim_matched, action = clap::ArgAction::Set)]
@@ -585,12 +589,17 @@ pub fn run(cli: Cli) -> Result<()> {
                 a.transform_draws >= 0.0 && a.transform_draws.is_finite(),
                 "--transform-draws must be a non-negative factor"
             );
+            anyhow::ensure!(
+                a.prior_anchor_s >= 0.0 && a.prior_anchor_s.is_finite(),
+                "--prior-anchor-s must be a non-negative number of seconds"
+            );
             let tracker = prior.filter(|p| !p.is_empty() && !a.ignore_prior).map(|p| {
                 let settings = crate::filter::PriorSettings {
                     match_every_s: a.match_every,
                     position_floor_m: a.prior_floor,
                     transform_draws: (a.transform_draws > 0.0).then_some(a.transform_draws),
                     claim_matched: a.claim_matched,
+                    anchor_window_s: a.prior_anchor_s,
                     ..Default::default()
                 };
                 crate::filter::PriorTracker::new(p, settings, a.seed)

@@ -128,10 +128,10 @@ pub fn write_run(
     std::fs::write(dir.join("map.json"), out.map.to_json_pretty())?;
     std::fs::write(dir.join("track.csv"), track_csv(&out.rows))?;
     if out.had_prior {
-        let mut s = String::from("t,accepted,inliers,angle_rad,tx,ty,action,reason\n");
+        let mut s = String::from("t,accepted,inliers,angle_rad,tx,ty,action,anchors,reason\n");
         for m in &out.matches {
             s.push_str(&format!(
-                "{},{},{},{},{},{},{},\"{}\"\n",
+                "{},{},{},{},{},{},{},{},\"{}\"\n",
                 m.t,
                 m.accepted,
                 m.inliers,
@@ -139,6 +139,7 @@ pub fn write_run(
                 m.tx,
                 m.ty,
                 m.action,
+                m.anchors,
                 m.reason.replace('"', "'")
             ));
         }

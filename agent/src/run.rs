@@ -69,7 +69,7 @@ pub fn run_filter_with_prior(
     for (k, snap) in log.snapshots.iter().enumerate() {
         let stats = filter.step(snap);
         if let Some(tr) = tracker.as_mut() {
-            tr.after_step(&mut filter, snap.t)?;
+            tr.after_step(&mut filter, snap)?;
         }
         let truth_cols = truth.map(|t| {
             let p = &t.poses[k];

@@ -495,6 +495,11 @@ impl Filter {
             .sum()
     }
 
+    /// whether the log's measurements carry an angle of arrival
+    pub fn has_aoa(&self) -> bool {
+        self.aoa
+    }
+
     pub fn config(&self) -> &FilterConfig {
         &self.cfg
     }
