@@ -59,6 +59,16 @@ fn spd(cov: &Matrix3<f64>) -> Matrix3<f64> {
     c
 }
 
+/// The id of the exported transmitter of track `track`.
+pub fn transmitter_id(track: u64) -> String {
+    format!("t{track}")
+}
+
+/// The track an exported transmitter id names (inverse of [`transmitter_id`]).
+pub fn track_of(id: &str) -> Option<u64> {
+    id.strip_prefix('t').and_then(|k| k.parse().ok())
+}
+
 /// Builds the user map from the filter's current state.
 pub fn export_map(filter: &Filter) -> Result<TransmitterMap, MapError> {
     let w = filter.weights();
@@ -111,7 +121,7 @@ pub fn export_map(filter: &Filter) -> Result<TransmitterMap, MapError> {
             c.cov = spd(&c.cov);
         }
         transmitters.push(Transmitter {
-            id: format!("t{}", filter.identities()[id].track),
+            id: transmitter_id(filter.identities()[id].track),
             components: comps,
             existence: existence.clamp(0.0, 1.0),
             reliability_m: reliability.max(0.0),

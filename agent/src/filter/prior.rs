@@ -10,7 +10,7 @@
 use super::model::Comp;
 use super::rbpf::Filter;
 use super::srckf::SqrtGaussian;
-use crate::filter::export::export_map;
+use crate::filter::export::{export_map, track_of};
 use anyhow::Result;
 use echomap_shared::log::Snapshot;
 use echomap_shared::map::TransmitterMap;
@@ -450,7 +450,7 @@ impl PriorTracker {
         } else {
             "none"
         };
-        let a = if m.accepted { fit } else { m.map_from_agent };
+        let a = fit;
         self.events.push(MatchEvent {
             t,
             accepted: m.accepted,
@@ -476,11 +476,7 @@ impl PriorTracker {
         let floor = Matrix2::identity() * self.settings.position_floor_m.powi(2);
         let mut pairs: Vec<(PointCov, PointCov)> = Vec::new();
         for &(u, j) in &m.correspondences {
-            let Some(obs) = user.transmitters()[u]
-                .id
-                .strip_prefix('t')
-                .and_then(|k| k.parse::<u64>().ok())
-                .and_then(|k| self.anchors.get(&k))
+            let Some(obs) = track_of(&user.transmitters()[u].id).and_then(|k| self.anchors.get(&k))
             else {
                 continue;
             };
@@ -516,8 +512,9 @@ impl PriorTracker {
                 ),
             ));
         }
+        // every pass that changes anything drops a pair, so this ends
         let mut iso = m.map_from_agent;
-        for _ in 0..4 {
+        loop {
             if pairs.len() < 3 {
                 return None;
             }
@@ -537,7 +534,7 @@ impl PriorTracker {
                 break;
             }
         }
-        (pairs.len() >= 3).then(|| Anchored {
+        Some(Anchored {
             map_from_agent: iso,
             points: pairs.iter().map(|((q, _), _)| *q).collect(),
             residuals_m: pairs
