@@ -1,4 +1,4 @@
-//! End to end, as a user runs it: a real `echomap-server` process on loopback and three
+//! End to end, as a user runs it: a real `echomap-server` process on loopback and triples of
 //! `echomap-agent run --server … --map …` processes, one after another, on the indoor scenario.
 //! Each agent fetches the prior map, runs Channel-SLAM and uploads its map.
 //!
@@ -9,7 +9,7 @@
 mod common;
 
 use serde_json::Value;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::Stdio;
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::Command;
@@ -25,6 +25,62 @@ fn agent_binary() -> PathBuf {
     agent
 }
 
+/// One agent process: `run --scenario indoor --track user01 --seed SEED --server … --map MAP`.
+async fn run_agent(base: &str, map: &str, seed: u64, token: &Path, out: &Path) -> Agent {
+    let status = Command::new(agent_binary())
+        .args([
+            "run",
+            "--scenario",
+            "indoor",
+            "--track",
+            "user01",
+            "--particles",
+            "200",
+            "--quiet",
+        ])
+        .args(["--seed", &seed.to_string(), "--server", base, "--map", map])
+        .arg("--token-file")
+        .arg(token)
+        .arg("--out")
+        .arg(out)
+        .stdout(Stdio::null())
+        .status()
+        .await
+        .unwrap();
+    assert!(
+        status.success(),
+        "agent (seed {seed}, map {map}) failed: {status:?}"
+    );
+    let read = |f: &str| -> Value {
+        serde_json::from_str(&std::fs::read_to_string(out.join(f)).unwrap()).unwrap()
+    };
+    assert!(out.join("map.json").exists());
+    Agent {
+        prior: read("prior.json"),
+        upload: read("upload.json"),
+        summary: read("summary.json"),
+    }
+}
+
+#[derive(Debug)]
+struct Agent {
+    prior: Value,
+    upload: Value,
+    summary: Value,
+}
+
+impl Agent {
+    fn metric(&self, key: &str) -> f64 {
+        self.summary[key].as_f64().unwrap()
+    }
+}
+
+/// Triples of agents on the same track `user01`, each triple on a map of its own: agent 1
+/// (seed K) starts from an empty map, agent 2 (seed 100 + K: other measurements of the same
+/// walk) from agent 1's map, agent 3 walks agent 1's measurements again (seed K) with the map
+/// the two left. Every triple must reach map version 3 with agents 2 and 3 matching the prior
+/// while they run; over the triples, agent 3's error must be lower than agent 1's — the same
+/// measurements, once alone and once with the crowd's map.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn three_agents_share_a_map_through_a_real_server() {
     let dir = tempfile::tempdir().unwrap();
@@ -52,123 +108,118 @@ async fn three_agents_share_a_map_through_a_real_server() {
         .unwrap()
         .to_owned();
     let c = common::client();
-    let r = c
-        .put(format!("{base}/v1/maps/indoor"))
-        .bearer_auth(common::OPERATOR)
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 201);
 
-    let mut seen_versions = Vec::new();
-    let mut summaries: Vec<Value> = Vec::new();
-    for seed in 1..=3u64 {
-        let out = dir.path().join(format!("agent{seed}"));
-        let status = Command::new(agent_binary())
-            .args([
-                "run",
-                "--scenario",
-                "indoor",
-                "--track",
-                "user01",
-                "--particles",
-                "200",
-                "--quiet",
-            ])
-            .args([
-                "--seed",
-                &seed.to_string(),
-                "--server",
-                &base,
-                "--map",
-                "indoor",
-                "--token-file",
-            ])
-            .arg(&agent_token)
-            .arg("--out")
-            .arg(&out)
-            .stdout(Stdio::null())
-            .status()
+    let mut firsts = Vec::new();
+    let mut lasts = Vec::new();
+    for k in 1..=TRIPLES {
+        let map = format!("indoor-k{k}");
+        let r = c
+            .put(format!("{base}/v1/maps/{map}"))
+            .bearer_auth(common::OPERATOR)
+            .send()
             .await
             .unwrap();
-        assert!(status.success(), "agent {seed} failed: {status:?}");
-        let prior: Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("prior.json")).unwrap())
-                .unwrap();
-        seen_versions.push(prior["version"].as_i64().unwrap());
-        let upload: Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("upload.json")).unwrap())
-                .unwrap();
-        let status = upload["status"].as_str().unwrap();
-        assert!(status == "accepted" || status == "rejected", "{upload}");
-        if seed == 1 {
-            assert_eq!(status, "accepted", "the first upload initializes the map");
-            assert_eq!(upload["response"]["initialized"], true);
+        assert_eq!(r.status(), 201);
+        let mut agents = Vec::new();
+        for (n, seed) in [(1, k), (2, 100 + k), (3, k)] {
+            let out = dir.path().join(format!("k{k}-agent{n}"));
+            agents.push(run_agent(&base, &map, seed, &agent_token, &out).await);
         }
-        assert!(out.join("map.json").exists() && out.join("summary.json").exists());
-        summaries.push(
-            serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap())
-                .unwrap(),
+        for (n, a) in agents.iter().enumerate() {
+            let status = a.upload["status"].as_str().unwrap();
+            assert_eq!(
+                status,
+                "accepted",
+                "triple {k}, agent {}: {}",
+                n + 1,
+                a.upload
+            );
+        }
+        assert_eq!(
+            agents[0].upload["response"]["initialized"], true,
+            "the first upload initializes the map"
         );
-    }
-    // the later agents matched the prior map while running and took transmitters over
-    for (k, s) in summaries.iter().enumerate().skip(1) {
-        assert!(
-            s["prior_matched_at_s"].as_f64().is_some(),
-            "agent {} never matched the prior: {s}",
-            k + 1
-        );
-        assert!(
-            s["prior_transmitters_used"].as_f64().unwrap() >= 3.0,
-            "agent {}: {s}",
-            k + 1
-        );
-    }
-    eprintln!(
-        "final MAE per agent: {:?}",
-        summaries
+        // the first agent saw an empty map, the later ones the map the earlier ones left
+        let versions: Vec<i64> = agents
             .iter()
-            .map(|s| s["mae_final_m"].as_f64().unwrap())
-            .collect::<Vec<_>>()
-    );
-    // the first agent saw an empty map, the later ones the map the earlier ones left
-    assert_eq!(seen_versions[0], 0);
-    assert!(
-        seen_versions[1] >= 1 && seen_versions[2] >= seen_versions[1],
-        "{seen_versions:?}"
-    );
-    let page: Value = c
-        .get(format!("{base}/v1/maps/indoor/contributions"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
-    let rows = page["contributions"].as_array().unwrap();
-    assert_eq!(rows.len(), 3, "every agent's upload is recorded");
-    let map: Value = c
-        .get(format!("{base}/v1/maps/indoor"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
-    assert_eq!(map["version"], 3, "every upload merged: {rows:?}");
-    // the same track walked again: a later agent's map must match the first one's and merge
-    let merged = rows[1..]
-        .iter()
-        .filter(|r| r["status"] == "accepted" && r["merged"].as_i64().unwrap_or(0) >= 5)
-        .count();
-    assert!(
-        merged >= 1,
-        "no later upload matched the first map: {rows:?}"
-    );
-    assert!(
-        rows.iter()
-            .all(|r| r["contributor"] == "alice" && r["agent"] == "echomap-agent")
-    );
+            .map(|a| a.prior["version"].as_i64().unwrap())
+            .collect();
+        assert_eq!(versions, [0, 1, 2], "triple {k}");
+        // the later agents matched the prior map while running and took transmitters over
+        for (n, a) in agents.iter().enumerate().skip(1) {
+            assert!(
+                a.summary["prior_matched_at_s"].as_f64().is_some(),
+                "triple {k}: agent {} never matched the prior: {}",
+                n + 1,
+                a.summary
+            );
+            assert!(
+                a.metric("prior_transmitters_used") >= 3.0,
+                "triple {k}: agent {}: {}",
+                n + 1,
+                a.summary
+            );
+        }
+        let page: Value = c
+            .get(format!("{base}/v1/maps/{map}/contributions"))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        let rows = page["contributions"].as_array().unwrap();
+        assert_eq!(rows.len(), 3, "every agent's upload is recorded");
+        assert!(
+            rows.iter()
+                .all(|r| r["contributor"] == "alice" && r["agent"] == "echomap-agent")
+        );
+        // the same track walked again: the later maps match the first one's and merge
+        assert!(
+            rows[1..]
+                .iter()
+                .all(|r| r["status"] == "accepted" && r["merged"].as_i64().unwrap_or(0) >= 5),
+            "a later upload did not match the first map: {rows:?}"
+        );
+        let head: Value = c
+            .get(format!("{base}/v1/maps/{map}"))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        assert_eq!(head["version"], 3, "every upload merged: {rows:?}");
+        eprintln!(
+            "triple {k}: mean MAE {:.2} / {:.2} / {:.2} m, final MAE {:.2} / {:.2} / {:.2} m, ATE {:.2} / {:.2} / {:.2} m",
+            agents[0].metric("mae_mean_m"),
+            agents[1].metric("mae_mean_m"),
+            agents[2].metric("mae_mean_m"),
+            agents[0].metric("mae_final_m"),
+            agents[1].metric("mae_final_m"),
+            agents[2].metric("mae_final_m"),
+            agents[0].metric("ate_m"),
+            agents[1].metric("ate_m"),
+            agents[2].metric("ate_m"),
+        );
+        lasts.push(agents.pop().unwrap());
+        firsts.push(agents.swap_remove(0));
+    }
+    // Over the triples (a single pair can go either way: a map built from two walks of the
+    // same track carries their correlated errors, README "Three agents on one track"): the
+    // final error of the walk and the error of its shape (ATE, after rigid alignment).
+    for key in ["mae_final_m", "ate_m"] {
+        let mean = |v: &[Agent]| v.iter().map(|a| a.metric(key)).sum::<f64>() / v.len() as f64;
+        let (first, last) = (mean(&firsts), mean(&lasts));
+        eprintln!("{key}: agent 1 {first:.3} m, agent 3 {last:.3} m (mean of {TRIPLES} triples)");
+        assert!(
+            last < first,
+            "{key}: the agent with the crowd's map ({last:.3} m) is not better than the same walk alone ({first:.3} m)"
+        );
+    }
     server.start_kill().unwrap();
     server.wait().await.unwrap();
 }
+
+/// Triples of agents the end-to-end test runs (seeds K = 1…TRIPLES).
+const TRIPLES: u64 = 4;
