@@ -7,7 +7,10 @@
 //! landmark keeps its track id while it is re-observed within `track_gap_s`; after a longer
 //! gap it gets a new id, so the filter has to associate it with the transmitter it knows.
 //! Snapshots are formed at a fixed rate; gyro and speed are the time averages of the
-//! odometry (zero-order hold) over each snapshot interval.
+//! odometry (zero-order hold) over each snapshot interval. The camera delivers a few frames
+//! per second and MRCLAM lists only its detections: a snapshot whose interval holds no
+//! measurement row at all is written motion-only (`"estimate": false`), so that the filter
+//! does not count it as "nothing visible".
 
 use anyhow::{Context, Result, bail, ensure};
 use echomap_shared::Transform2;
@@ -172,9 +175,13 @@ pub fn import(dir: &Path, opts: ImportOptions) -> Result<(MeasurementLog, Ground
         // measurements in (t − dt, t], the last one per landmark
         let mut latest: std::collections::BTreeMap<i64, (f64, f64, f64)> =
             std::collections::BTreeMap::new();
+        // the camera looked in this interval iff it reported anything (a robot, an unknown
+        // barcode): MRCLAM lists detections only, at a few frames per second
+        let mut looked = false;
         while mi < meas.len() && meas[mi][0] <= t {
             let r = &meas[mi];
             mi += 1;
+            looked = true;
             let Some(&subject) = subject_of.get(&(r[1] as i64)) else {
                 continue;
             };
@@ -215,6 +222,7 @@ pub fn import(dir: &Path, opts: ImportOptions) -> Result<(MeasurementLog, Ground
             gyro,
             speed: Some(speed),
             components,
+            estimate: looked,
         });
         let (x, y, h) = interp_pose(&gt, t);
         let p = local_from_world * Point2::new(x, y);
@@ -331,6 +339,13 @@ mod tests {
             "a gap over --track-gap starts a new track"
         );
         assert_eq!(truth.transmitters.len(), 2);
+        // the camera looked in 4 intervals (3 landmark sightings, 1 of the other robot); every
+        // other snapshot is motion-only, and the robot's interval has an estimate but no component
+        let looked: Vec<usize> = (0..log.snapshots.len())
+            .filter(|&k| log.snapshots[k].estimate)
+            .collect();
+        assert_eq!(looked, [11, 16, 30, 81], "snapshots with a camera frame");
+        assert!(log.snapshots[30].components.is_empty());
         // landmark (4,3) in the local frame of a robot starting at (1,2) heading +x: (3, 1)
         let s = truth.transmitters[0].state;
         assert!((s[0] - 3.0).abs() < 1e-9 && (s[1] - 1.0).abs() < 1e-9 && s[2] == 0.0);

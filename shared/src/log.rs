@@ -7,7 +7,9 @@
 //!   "speed":false,"source":"…"}` — `aoa` says whether components carry an angle of arrival,
 //!   `speed` whether snapshots carry a speed measurement (step counter / wheel odometry);
 //! - every further line, one snapshot: `{"t":0.1,"gyro":0.02,"speed":1.0,"components":[
-//!   {"track":3,"d":12.5,"aoa":-0.4,"snr_db":14.2}]}`.
+//!   {"track":3,"d":12.5,"aoa":-0.4,"snr_db":14.2}]}`; a snapshot without a channel estimate
+//!   (motion only: the sensor delivers estimates slower than the snapshot rate) says
+//!   `"estimate":false` and has no components.
 //!
 //! `gyro` is the mean heading rate (rad/s, counter-clockwise positive) over the interval that
 //! ends at `t`, i.e. the heading turned since the previous snapshot divided by its duration;
@@ -68,6 +70,20 @@ pub struct Snapshot {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub speed: Option<f64>,
     pub components: Vec<Measurement>,
+    /// Whether the snapshot carries a channel estimate. `false`: motion only — the sensor
+    /// delivered no estimate in this interval (a camera or estimator slower than the snapshot
+    /// rate), so the empty `components` are no evidence that any transmitter was out of sight.
+    /// Absent: `true`.
+    #[serde(default = "yes", skip_serializing_if = "is_true")]
+    pub estimate: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -165,6 +181,9 @@ fn check_snapshot(h: &LogHeader, s: &Snapshot, last_t: f64) -> Result<(), String
             return Err("speed must be finite and ≥ 0".into());
         }
         _ => {}
+    }
+    if !s.estimate && !s.components.is_empty() {
+        return Err("components present but estimate is false (a motion-only snapshot)".into());
     }
     let mut tracks = HashSet::new();
     for (k, c) in s.components.iter().enumerate() {
@@ -265,6 +284,21 @@ mod tests {
     }
 
     #[test]
+    fn motion_only_snapshots_say_so_and_others_stay_unchanged() {
+        let text = r#"{"format":"echomap.log.v1","snapshot_rate_hz":10.0,"aoa":true}
+{"t":0.0,"gyro":0.0,"components":[]}
+{"t":0.1,"gyro":0.0,"components":[],"estimate":false}
+"#;
+        let log = MeasurementLog::parse(text).unwrap();
+        assert!(log.snapshots[0].estimate, "absent means an estimate");
+        assert!(!log.snapshots[1].estimate);
+        let out = log.to_jsonl();
+        // a snapshot with an estimate is written as before (no new field)
+        assert_eq!(out.matches("estimate").count(), 1, "{out}");
+        assert_eq!(MeasurementLog::parse(&out).unwrap(), log);
+    }
+
+    #[test]
     fn errors_name_the_line() {
         let header = r#"{"format":"echomap.log.v1","snapshot_rate_hz":10.0,"aoa":true}"#;
         let ok = r#"{"t":0.0,"gyro":0.0,"components":[]}"#;
@@ -296,6 +330,12 @@ mod tests {
                 1,
             ),
             (String::new(), 1),
+            (
+                format!(
+                    "{header}\n{ok}\n{{\"t\":0.1,\"gyro\":0.0,\"estimate\":false,\"components\":[{{\"track\":1,\"d\":1,\"aoa\":0.0,\"snr_db\":1}}]}}"
+                ),
+                3,
+            ),
         ];
         for (text, line) in cases {
             let e = MeasurementLog::parse(&text).unwrap_err();

@@ -385,6 +385,7 @@ fn a_standing_user_with_a_measured_zero_speed_stays_put() {
             gyro: 0.0,
             speed: Some(0.0),
             components: vec![],
+            estimate: true,
         }));
     }
     let s = last.unwrap();
@@ -636,5 +637,42 @@ fn detections_of_the_first_second_anchor_the_matched_transform() {
     assert!(
         anchored.0 < plain.0 && anchored.1 < plain.1,
         "anchored {anchored:?} vs plain {plain:?}"
+    );
+}
+
+#[test]
+fn a_motion_only_snapshot_is_no_visibility_evidence() {
+    // One detection of track 1, then a snapshot without a channel estimate, then one with an
+    // estimate that does not report track 1: only the last counts as "not seen".
+    use echomap_shared::log::{Measurement, Snapshot};
+    let mut f = Filter::new(cfg(1, 50), true);
+    let snap = |t: f64, components: Vec<Measurement>, estimate: bool| Snapshot {
+        t,
+        gyro: 0.0,
+        speed: Some(1.0),
+        components,
+        estimate,
+    };
+    let seen = Measurement {
+        track: 1,
+        d: 10.0,
+        aoa: Some(0.3),
+        snr_db: 20.0,
+    };
+    let counts = |f: &Filter| {
+        f.visibility()
+            .cells(0)
+            .values()
+            .fold((0.0, 0.0), |a, b| (a.0 + b.alpha, a.1 + b.beta))
+    };
+    f.step(&snap(0.0, vec![seen], true));
+    assert_eq!(counts(&f), (1.0, 0.0));
+    f.step(&snap(0.1, vec![], false));
+    assert_eq!(counts(&f), (1.0, 0.0), "motion only: nothing learned");
+    f.step(&snap(0.2, vec![], true));
+    assert_eq!(
+        counts(&f),
+        (1.0, 1.0),
+        "an estimate without the track: not seen"
     );
 }

@@ -304,6 +304,7 @@ pub fn simulate(
             gyro,
             speed: None,
             components,
+            estimate: true,
         });
         let local = local_from_world * pos;
         poses.push(TruePose {
