@@ -62,6 +62,10 @@ async fn run_agent(base: &str, map: &str, seed: u64, token: &Path, out: &Path) -
     }
 }
 
+async fn get_json(c: &reqwest::Client, url: String) -> Value {
+    c.get(url).send().await.unwrap().json().await.unwrap()
+}
+
 #[derive(Debug)]
 struct Agent {
     prior: Value,
@@ -160,14 +164,7 @@ async fn three_agents_share_a_map_through_a_real_server() {
                 a.summary
             );
         }
-        let page: Value = c
-            .get(format!("{base}/v1/maps/{map}/contributions"))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
+        let page = get_json(&c, format!("{base}/v1/maps/{map}/contributions")).await;
         let rows = page["contributions"].as_array().unwrap();
         assert_eq!(rows.len(), 3, "every agent's upload is recorded");
         assert!(
@@ -181,14 +178,7 @@ async fn three_agents_share_a_map_through_a_real_server() {
                 .all(|r| r["status"] == "accepted" && r["merged"].as_i64().unwrap_or(0) >= 5),
             "a later upload did not match the first map: {rows:?}"
         );
-        let head: Value = c
-            .get(format!("{base}/v1/maps/{map}"))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
+        let head = get_json(&c, format!("{base}/v1/maps/{map}")).await;
         assert_eq!(head["version"], 3, "every upload merged: {rows:?}");
         eprintln!(
             "triple {k}: mean MAE {:.2} / {:.2} / {:.2} m, final MAE {:.2} / {:.2} / {:.2} m, ATE {:.2} / {:.2} / {:.2} m",
