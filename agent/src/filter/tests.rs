@@ -568,7 +568,7 @@ fn detections_of_the_first_second_anchor_the_matched_transform() {
     // The prior: the track's true transmitters in another frame, each moved by N(0, 0.3²)
     // per axis (their declared std). The first match (5 s in) is fitted once to the agent's
     // map alone (anchor window 0) and once refitted to the anchor points of the first
-    // second's detections (the default). The agent's map at 5 s shares the heading its
+    // second's detections (window 1 s). The agent's map at 5 s shares the heading its
     // track drifted by, the anchor points do not: over eight seeds the anchored transform
     // must be closer to the true frame relation on average, in rotation and in where it puts
     // the transmitters.
