@@ -243,6 +243,11 @@ pub struct RunArgs {
     /// candidates for new tracks (default `false`: every prior transmitter stays one)
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().claim_matched, action = clap::ArgAction::Set)]
     pub claim_matched: bool,
+    /// weight of the visibility term when the agent's map is matched against the prior (seed
+    /// 001 eq. 18); 0 matches by transmitter positions alone (sensors whose detections depend
+    /// on the heading, like MRCLAM's camera)
+    #[arg(long, default_value_t = 1.0, value_parser = non_negative)]
+    pub prior_visibility_weight: f64,
     /// with --server: fetch and upload, but do not use the prior map in the filter
     #[arg(long)]
     pub ignore_prior: bool,
@@ -327,6 +332,9 @@ pub struct MatchArgs {
     /// one JSON object on stdout
     #[arg(long)]
     pub json: bool,
+    /// weight of the visibility term of eq. 18 in the score; 0 scores by location alone
+    #[arg(long, default_value_t = 1.0, value_parser = non_negative)]
+    pub visibility_weight: f64,
 }
 
 #[derive(Debug, Args)]
@@ -341,6 +349,16 @@ pub struct MergeArgs {
     /// merged map (written only when the match is accepted or the prior is empty)
     #[arg(long)]
     pub out: PathBuf,
+    /// weight of the visibility term of eq. 18 in the matching score; 0: location alone
+    #[arg(long, default_value_t = 1.0, value_parser = non_negative)]
+    pub visibility_weight: f64,
+}
+
+fn non_negative(s: &str) -> std::result::Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("{s:?} is not a non-negative number")),
+    }
 }
 
 fn read_map(path: &Path) -> Result<echomap_shared::TransmitterMap> {
@@ -467,6 +485,15 @@ pub struct CooperativeArgs {
     /// real data instead: `mrclam DIR` (UTIAS MRCLAM; every robot is the reference once)
     #[arg(long, num_args = 2, value_names = ["KIND", "DIR"])]
     pub dataset: Vec<String>,
+    /// weight of the visibility term when maps are matched — by the loopback server it starts
+    /// and in every agent (`run --prior-visibility-weight`); default 1, with `--dataset
+    /// mrclam` 0 (a camera's detections depend on its heading, not only on the place)
+    #[arg(long, value_parser = non_negative)]
+    pub match_visibility_weight: Option<f64>,
+    /// with --dataset mrclam: the robots that act as the reference, each in turn (the others
+    /// build its map); default all five
+    #[arg(long, value_delimiter = ',', default_value = "1,2,3,4,5")]
+    pub references: Vec<u32>,
     /// use this server instead of starting one on loopback
     #[arg(long, env = "ECHOMAP_SERVER")]
     pub server: Option<String>,
@@ -600,6 +627,8 @@ pub fn run(cli: Cli) -> Result<()> {
                     transform_draws: (a.transform_draws > 0.0).then_some(a.transform_draws),
                     claim_matched: a.claim_matched,
                     anchor_window_s: a.prior_anchor_s,
+                    matching: echomap_shared::matching::MatchConfig::default()
+                        .with_visibility_weight(a.prior_visibility_weight),
                     ..Default::default()
                 };
                 crate::filter::PriorTracker::new(p, settings, a.seed)
@@ -629,8 +658,9 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Match(a) => {
             let (user, prior) = (read_map(&a.user)?, read_map(&a.prior)?);
             let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(a.seed);
-            let r =
-                echomap_shared::matching::match_maps(&user, &prior, &Default::default(), &mut rng);
+            let cfg = echomap_shared::matching::MatchConfig::default()
+                .with_visibility_weight(a.visibility_weight);
+            let r = echomap_shared::matching::match_maps(&user, &prior, &cfg, &mut rng);
             let j = match_json(&r, &user, &prior);
             if a.json {
                 println!("{j}");
@@ -645,12 +675,9 @@ pub fn run(cli: Cli) -> Result<()> {
                 (nalgebra::Isometry2::identity(), Vec::new())
             } else {
                 let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(a.seed);
-                let r = echomap_shared::matching::match_maps(
-                    &user,
-                    &prior,
-                    &Default::default(),
-                    &mut rng,
-                );
+                let cfg = echomap_shared::matching::MatchConfig::default()
+                    .with_visibility_weight(a.visibility_weight);
+                let r = echomap_shared::matching::match_maps(&user, &prior, &cfg, &mut rng);
                 if !r.accepted {
                     bail!(
                         "no match, nothing written: {}",
@@ -835,12 +862,27 @@ pub const MRCLAM_RUN_ARGS: [&str; 14] = [
     "30",
 ];
 
+/// The cooperative experiment's matching visibility weight: as given, else 1 — and 0 on
+/// MRCLAM, whose camera's detections depend on its heading, not only on the place.
+fn match_visibility_weight(a: &CooperativeArgs) -> f64 {
+    a.match_visibility_weight
+        .unwrap_or(if a.dataset.is_empty() { 1.0 } else { 0.0 })
+}
+
 fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
     use crate::experiment::{ExperimentSpec, cooperative_mrclam, cooperative_scenario};
     anyhow::ensure!(a.runs >= 1, "--runs must be at least 1");
     let mut contributors = a.contributors.clone();
     contributors.sort_unstable();
     contributors.dedup();
+    let weight = match_visibility_weight(a);
+    for x in &a.references {
+        anyhow::ensure!(
+            (1..=5).contains(x),
+            "--references: robot {x} is not one of 1…5"
+        );
+    }
+    let weight_arg = ["--prior-visibility-weight".to_string(), weight.to_string()];
     let spec = |crowd: Vec<String>, reference: Vec<String>| ExperimentSpec {
         exe: std::env::current_exe().expect("the running executable"),
         server: a.server.clone(),
@@ -848,10 +890,11 @@ fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
         runs: a.runs,
         first_seed: a.first_seed,
         parallel: a.parallel.max(1),
-        crowd_args: [crowd, a.run_args.clone()].concat(),
-        reference_args: [reference, a.run_args.clone()].concat(),
+        crowd_args: [crowd, weight_arg.to_vec(), a.run_args.clone()].concat(),
+        reference_args: [reference, weight_arg.to_vec(), a.run_args.clone()].concat(),
         out: a.out.clone(),
         progress: true,
+        match_visibility_weight: weight,
     };
     let particles = |n: usize| vec!["--particles".to_string(), n.to_string()];
     match a.dataset.as_slice() {
@@ -886,7 +929,7 @@ fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
             c.extend(extra.clone());
             let mut r = particles(a.reference_particles);
             r.extend(extra);
-            cooperative_mrclam(&spec(c, r), &logs)?;
+            cooperative_mrclam(&spec(c, r), &logs, &a.references)?;
         }
         [kind, _] => bail!("--dataset: unknown kind {kind:?} (known: mrclam)"),
         _ => bail!("--dataset takes KIND DIR"),
@@ -921,5 +964,42 @@ mod tests {
         );
         let err = prior_window(&["--prior-association-window", "0"]).unwrap_err();
         assert!(err.to_string().contains("at least 1"), "{err}");
+    }
+
+    #[test]
+    fn the_cooperative_experiment_matches_mrclam_by_position_alone_unless_told() {
+        let weight = |args: &[&str]| {
+            let base = ["echomap-agent", "experiment", "cooperative", "--out", "o"];
+            let cli = Cli::try_parse_from(base.iter().chain(args))?;
+            let Command::Experiment(ExperimentCommand::Cooperative(a)) = cli.command else {
+                panic!("not the cooperative experiment");
+            };
+            Ok::<f64, clap::Error>(match_visibility_weight(&a))
+        };
+        assert_eq!(weight(&[]).unwrap(), 1.0);
+        assert_eq!(weight(&["--dataset", "mrclam", "d"]).unwrap(), 0.0);
+        let given = [
+            "--dataset",
+            "mrclam",
+            "d",
+            "--match-visibility-weight",
+            "0.5",
+        ];
+        assert_eq!(weight(&given).unwrap(), 0.5);
+        for bad in [
+            "--match-visibility-weight=-1",
+            "--match-visibility-weight=NaN",
+        ] {
+            let err = weight(&[bad]).unwrap_err();
+            assert!(err.to_string().contains("non-negative"), "{err}");
+        }
+        let run = Cli::try_parse_from([
+            "echomap-agent",
+            "run",
+            "--out",
+            "o",
+            "--prior-visibility-weight=-2",
+        ]);
+        assert!(run.unwrap_err().to_string().contains("non-negative"));
     }
 }

@@ -33,6 +33,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         reference_args: particles,
         out: a.out.clone(),
         progress: true,
+        match_visibility_weight: 1.0,
     };
     println!(
         "echomap demo: {} users build a map of `indoor` on a fresh map server, then the reference user runs alone and with it ({} particles each)",

@@ -28,6 +28,8 @@ pub struct ExperimentSpec {
     pub reference_args: Vec<String>,
     pub out: PathBuf,
     pub progress: bool,
+    /// the started loopback server's `--match-visibility-weight`
+    pub match_visibility_weight: f64,
 }
 
 /// One evaluated configuration: its label and the per-run `(traveled, mae, err)` series.
@@ -90,7 +92,8 @@ impl Server {
         let (url, token_file, local) = match &spec.server {
             Some(url) => (url.clone(), spec.token_file.clone(), None),
             None => {
-                let local = LocalServer::start()?;
+                let weight = spec.match_visibility_weight;
+                let local = LocalServer::start_with(|c| c.match_visibility_weight = weight)?;
                 println!(
                     "map server on {} (SQLite {})",
                     local.url,
@@ -334,15 +337,16 @@ fn finish(all: &[Curves], title: &str, header: &str, out: &Path) -> Result<()> {
     Ok(())
 }
 
-/// MRCLAM: each robot in `robots` is the reference once; the other robots (in order) build
-/// a map, then the reference runs alone and with it.
+/// MRCLAM: each robot of `references` is the reference once; the other robots of `logs` (in
+/// order) build a map, then the reference runs alone and with it.
 pub fn cooperative_mrclam(
     spec: &ExperimentSpec,
     logs: &[(u32, PathBuf)],
+    references: &[u32],
 ) -> Result<Vec<(u32, Curves, Curves)>> {
     let s = Server::open(spec)?;
     let mut out = Vec::new();
-    for (reference_robot, reference_log) in logs {
+    for (reference_robot, reference_log) in logs.iter().filter(|(r, _)| references.contains(r)) {
         let mut alone = Vec::new();
         let mut with = Vec::new();
         for run in 0..spec.runs {

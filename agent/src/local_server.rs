@@ -18,6 +18,11 @@ pub struct LocalServer {
 impl LocalServer {
     /// Starts a server on 127.0.0.1 (free port) with a new SQLite file.
     pub fn start() -> Result<Self> {
+        Self::start_with(|_| {})
+    }
+
+    /// The same, with `adjust` applied to the server's settings last.
+    pub fn start_with(adjust: impl FnOnce(&mut echomap_server::config::Config)) -> Result<Self> {
         let dir = tempfile::Builder::new()
             .prefix("echomap-server-")
             .tempdir()
@@ -41,6 +46,7 @@ impl LocalServer {
         cfg.rate_limit_per_s = 1000;
         cfg.rate_limit_burst = 1000;
         cfg.shutdown_grace_s = 5;
+        adjust(&mut cfg);
         let (addr_tx, addr_rx) = std::sync::mpsc::channel();
         let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
         let thread = std::thread::Builder::new()

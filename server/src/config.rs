@@ -58,9 +58,23 @@ pub struct Config {
     #[arg(long, env = "ECHOMAP_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
     pub log_format: LogFormat,
 
+    /// Weight of the visibility term in the matching score (seed 001 eq. 18); 0 matches by
+    /// transmitter positions alone — for maps of sensors whose detections depend on the
+    /// heading (cameras), not only on the place. Every replica of a database must use the
+    /// same value: a rollback's replay must rebuild the same map.
+    #[arg(long, env = "ECHOMAP_MATCH_VISIBILITY_WEIGHT", default_value_t = 1.0, value_parser = non_negative)]
+    pub match_visibility_weight: f64,
+
     /// Seconds in-flight requests get to finish after SIGTERM/SIGINT.
     #[arg(long, env = "ECHOMAP_SHUTDOWN_GRACE_S", default_value_t = 30)]
     pub shutdown_grace_s: u64,
+}
+
+fn non_negative(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("{s:?} is not a non-negative number")),
+    }
 }
 
 impl Config {
@@ -70,5 +84,26 @@ impl Config {
         cfg.database_url = database_url.into();
         cfg.listen = "127.0.0.1:0".parse().expect("literal address");
         cfg
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_match_visibility_weight_is_a_non_negative_number() {
+        let parse = |v: &str| {
+            let flag = format!("--match-visibility-weight={v}");
+            Config::try_parse_from(["echomap-server", flag.as_str()])
+                .map(|c| c.match_visibility_weight)
+        };
+        assert_eq!(Config::for_database("x.db").match_visibility_weight, 1.0);
+        assert_eq!(parse("0").unwrap(), 0.0);
+        assert_eq!(parse("2.5").unwrap(), 2.5);
+        for bad in ["-1", "NaN", "inf", "heavy"] {
+            let e = parse(bad).unwrap_err().to_string();
+            assert!(e.contains("non-negative"), "{bad}: {e}");
+        }
     }
 }

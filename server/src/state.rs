@@ -70,12 +70,14 @@ impl Drop for InFlight<'_> {
 impl AppState {
     pub fn new(storage: Storage, tokens: TokenStore, config: Config) -> Self {
         let limiter = WriteLimiter::new(config.rate_limit_per_s, config.rate_limit_burst);
+        let match_cfg =
+            MatchConfig::default().with_visibility_weight(config.match_visibility_weight);
         AppState {
             storage,
             tokens,
             limiter,
             config,
-            match_cfg: MatchConfig::default(),
+            match_cfg,
             merge_cfg: MergeConfig::default(),
             map_locks: Mutex::default(),
             merge_queues: Mutex::default(),

@@ -468,10 +468,10 @@ fn visibility_breaks_a_symmetric_layout() {
         let user = mk(&truth.inverse(), "u", &mut rng);
         for (slot, use_vis) in [(0, true), (1, false)] {
             let cfg = MatchConfig {
-                use_visibility: use_vis,
                 min_inliers: 4,
                 ..MatchConfig::default()
-            };
+            }
+            .with_visibility_weight(if use_vis { 1.0 } else { 0.0 });
             let r = match_maps(&user, &prior, &cfg, &mut ChaCha8Rng::seed_from_u64(k));
             if r.accepted
                 && wrap_angle(r.map_from_agent.rotation.angle() - truth.rotation.angle()).abs()
