@@ -6,6 +6,7 @@ use crate::sim::simulate::{SimOptions, simulate};
 use crate::sim::{Scenario, SimOutput};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
+use echomap_server::config::non_negative;
 use echomap_shared::log::{GroundTruth, MeasurementLog};
 use std::path::{Path, PathBuf};
 
@@ -352,13 +353,6 @@ pub struct MergeArgs {
     /// weight of the visibility term of eq. 18 in the matching score; 0: location alone
     #[arg(long, default_value_t = 1.0, value_parser = non_negative)]
     pub visibility_weight: f64,
-}
-
-fn non_negative(s: &str) -> std::result::Result<f64, String> {
-    match s.parse::<f64>() {
-        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
-        _ => Err(format!("{s:?} is not a non-negative number")),
-    }
 }
 
 fn read_map(path: &Path) -> Result<echomap_shared::TransmitterMap> {

@@ -70,7 +70,8 @@ pub struct Config {
     pub shutdown_grace_s: u64,
 }
 
-fn non_negative(s: &str) -> Result<f64, String> {
+/// Clap value parser: a finite number ≥ 0 (also used by the agent's flags).
+pub fn non_negative(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
         _ => Err(format!("{s:?} is not a non-negative number")),
