@@ -5,8 +5,8 @@ use crate::sim::builtin;
 use crate::sim::simulate::{SimOptions, simulate};
 use crate::sim::{Scenario, SimOutput};
 use anyhow::{Context, Result, bail};
-use clap::{Args, Parser, Subcommand};
-use echomap_server::config::non_negative;
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use echomap_server::config::{MatchScore, non_negative};
 use echomap_shared::log::{GroundTruth, MeasurementLog};
 use std::path::{Path, PathBuf};
 
@@ -244,11 +244,20 @@ pub struct RunArgs {
     /// candidates for new tracks (default `false`: every prior transmitter stays one)
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().claim_matched, action = clap::ArgAction::Set)]
     pub claim_matched: bool,
+    /// a transform is adopted (or replaces one it disagrees with) only after this many
+    /// consecutive accepted matches agree on it (within 0.1 rad and 0.5 m); 1 (default)
+    /// adopts the first accepted match
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().confirmations, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    pub prior_confirmations: usize,
     /// weight of the visibility term when the agent's map is matched against the prior (seed
     /// 001 eq. 18); 0 matches by transmitter positions alone (sensors whose detections depend
     /// on the heading, like MRCLAM's camera)
     #[arg(long, default_value_t = 1.0, value_parser = non_negative)]
     pub prior_visibility_weight: f64,
+    /// how matching against the prior scores a hypothesis's inliers: `msac` or `likelihood`
+    /// (a covariance scale fitted per hypothesis)
+    #[arg(long, value_enum, default_value_t = MatchScore::Msac)]
+    pub prior_match_score: MatchScore,
     /// with --server: fetch and upload, but do not use the prior map in the filter
     #[arg(long)]
     pub ignore_prior: bool,
@@ -336,6 +345,10 @@ pub struct MatchArgs {
     /// weight of the visibility term of eq. 18 in the score; 0 scores by location alone
     #[arg(long, default_value_t = 1.0, value_parser = non_negative)]
     pub visibility_weight: f64,
+    /// how a hypothesis's inliers are scored: `msac` (1 − d²/gate each) or `likelihood` (a
+    /// covariance scale fitted per hypothesis)
+    #[arg(long, value_enum, default_value_t = MatchScore::Msac)]
+    pub score: MatchScore,
 }
 
 #[derive(Debug, Args)]
@@ -353,6 +366,9 @@ pub struct MergeArgs {
     /// weight of the visibility term of eq. 18 in the matching score; 0: location alone
     #[arg(long, default_value_t = 1.0, value_parser = non_negative)]
     pub visibility_weight: f64,
+    /// how a hypothesis's inliers are scored: `msac` or `likelihood`
+    #[arg(long, value_enum, default_value_t = MatchScore::Msac)]
+    pub score: MatchScore,
 }
 
 fn read_map(path: &Path) -> Result<echomap_shared::TransmitterMap> {
@@ -484,6 +500,12 @@ pub struct CooperativeArgs {
     /// mrclam` 0 (a camera's detections depend on its heading, not only on the place)
     #[arg(long, value_parser = non_negative)]
     pub match_visibility_weight: Option<f64>,
+    /// how hypotheses are scored when maps are matched — by the loopback server it starts
+    /// (`--match-score`) and in every agent (`run --prior-match-score`): `msac` or
+    /// `likelihood`; default `msac`, with `--dataset mrclam` `likelihood` (maps far tighter
+    /// than their covariances in a layout that nearly repeats under a half turn)
+    #[arg(long, value_enum)]
+    pub match_score: Option<MatchScore>,
     /// with --dataset mrclam: the robots that act as the reference, each in turn (the others
     /// build its map); default all five
     #[arg(long, value_delimiter = ',', default_value = "1,2,3,4,5")]
@@ -620,9 +642,13 @@ pub fn run(cli: Cli) -> Result<()> {
                     position_floor_m: a.prior_floor,
                     transform_draws: (a.transform_draws > 0.0).then_some(a.transform_draws),
                     claim_matched: a.claim_matched,
+                    confirmations: a.prior_confirmations,
                     anchor_window_s: a.prior_anchor_s,
-                    matching: echomap_shared::matching::MatchConfig::default()
-                        .with_visibility_weight(a.prior_visibility_weight),
+                    matching: echomap_shared::matching::MatchConfig {
+                        location_score: a.prior_match_score.location_score(),
+                        ..echomap_shared::matching::MatchConfig::default()
+                            .with_visibility_weight(a.prior_visibility_weight)
+                    },
                     ..Default::default()
                 };
                 crate::filter::PriorTracker::new(p, settings, a.seed)
@@ -652,8 +678,11 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Match(a) => {
             let (user, prior) = (read_map(&a.user)?, read_map(&a.prior)?);
             let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(a.seed);
-            let cfg = echomap_shared::matching::MatchConfig::default()
-                .with_visibility_weight(a.visibility_weight);
+            let cfg = echomap_shared::matching::MatchConfig {
+                location_score: a.score.location_score(),
+                ..echomap_shared::matching::MatchConfig::default()
+                    .with_visibility_weight(a.visibility_weight)
+            };
             let r = echomap_shared::matching::match_maps(&user, &prior, &cfg, &mut rng);
             let j = match_json(&r, &user, &prior);
             if a.json {
@@ -669,8 +698,11 @@ pub fn run(cli: Cli) -> Result<()> {
                 (nalgebra::Isometry2::identity(), Vec::new())
             } else {
                 let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(a.seed);
-                let cfg = echomap_shared::matching::MatchConfig::default()
-                    .with_visibility_weight(a.visibility_weight);
+                let cfg = echomap_shared::matching::MatchConfig {
+                    location_score: a.score.location_score(),
+                    ..echomap_shared::matching::MatchConfig::default()
+                        .with_visibility_weight(a.visibility_weight)
+                };
                 let r = echomap_shared::matching::match_maps(&user, &prior, &cfg, &mut rng);
                 if !r.accepted {
                     bail!(
@@ -863,6 +895,16 @@ fn match_visibility_weight(a: &CooperativeArgs) -> f64 {
         .unwrap_or(if a.dataset.is_empty() { 1.0 } else { 0.0 })
 }
 
+/// The cooperative experiment's matching score: as given, else MSAC — and the likelihood with
+/// a fitted scale on MRCLAM (README, "Cooperative Channel-SLAM", session 13).
+fn match_score(a: &CooperativeArgs) -> MatchScore {
+    a.match_score.unwrap_or(if a.dataset.is_empty() {
+        MatchScore::Msac
+    } else {
+        MatchScore::Likelihood
+    })
+}
+
 fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
     use crate::experiment::{ExperimentSpec, cooperative_mrclam, cooperative_scenario};
     anyhow::ensure!(a.runs >= 1, "--runs must be at least 1");
@@ -876,7 +918,18 @@ fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
             "--references: robot {x} is not one of 1…5"
         );
     }
-    let weight_arg = ["--prior-visibility-weight".to_string(), weight.to_string()];
+    let score = match_score(a);
+    let score_name = score
+        .to_possible_value()
+        .expect("no skipped variants")
+        .get_name()
+        .to_string();
+    let weight_arg = [
+        "--prior-visibility-weight".to_string(),
+        weight.to_string(),
+        "--prior-match-score".to_string(),
+        score_name,
+    ];
     let spec = |crowd: Vec<String>, reference: Vec<String>| ExperimentSpec {
         exe: std::env::current_exe().expect("the running executable"),
         server: a.server.clone(),
@@ -889,6 +942,7 @@ fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
         out: a.out.clone(),
         progress: true,
         match_visibility_weight: weight,
+        match_score: score,
     };
     let particles = |n: usize| vec!["--particles".to_string(), n.to_string()];
     match a.dataset.as_slice() {
@@ -972,6 +1026,20 @@ mod tests {
         };
         assert_eq!(weight(&[]).unwrap(), 1.0);
         assert_eq!(weight(&["--dataset", "mrclam", "d"]).unwrap(), 0.0);
+        let score = |args: &[&str]| {
+            let base = ["echomap-agent", "experiment", "cooperative", "--out", "o"];
+            let cli = Cli::try_parse_from(base.iter().chain(args)).unwrap();
+            let Command::Experiment(ExperimentCommand::Cooperative(a)) = cli.command else {
+                panic!("not the cooperative experiment");
+            };
+            match_score(&a)
+        };
+        assert_eq!(score(&[]), MatchScore::Msac);
+        assert_eq!(score(&["--dataset", "mrclam", "d"]), MatchScore::Likelihood);
+        assert_eq!(
+            score(&["--dataset", "mrclam", "d", "--match-score", "msac"]),
+            MatchScore::Msac
+        );
         let given = [
             "--dataset",
             "mrclam",
@@ -995,5 +1063,21 @@ mod tests {
             "--prior-visibility-weight=-2",
         ]);
         assert!(run.unwrap_err().to_string().contains("non-negative"));
+    }
+
+    #[test]
+    fn prior_confirmations_default_to_one_and_refuse_zero() {
+        let parse = |extra: &[&str]| {
+            let mut args = vec!["echomap-agent", "run", "--out", "o"];
+            args.extend_from_slice(extra);
+            Cli::try_parse_from(args).map(|c| match c.command {
+                Command::Run(a) => a.prior_confirmations,
+                _ => unreachable!(),
+            })
+        };
+        assert_eq!(parse(&[]).unwrap(), 1);
+        assert_eq!(parse(&["--prior-confirmations", "3"]).unwrap(), 3);
+        let err = parse(&["--prior-confirmations", "0"]).unwrap_err();
+        assert!(err.to_string().contains("0 is not in 1.."), "{err}");
     }
 }

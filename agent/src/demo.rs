@@ -34,6 +34,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         out: a.out.clone(),
         progress: true,
         match_visibility_weight: 1.0,
+        match_score: echomap_server::config::MatchScore::Msac,
     };
     println!(
         "echomap demo: {} users build a map of `indoor` on a fresh map server, then the reference user runs alone and with it ({} particles each)",

@@ -28,8 +28,9 @@ pub struct ExperimentSpec {
     pub reference_args: Vec<String>,
     pub out: PathBuf,
     pub progress: bool,
-    /// the started loopback server's `--match-visibility-weight`
+    /// the started loopback server's `--match-visibility-weight` and `--match-score`
     pub match_visibility_weight: f64,
+    pub match_score: echomap_server::config::MatchScore,
 }
 
 /// One evaluated configuration: its label and the per-run `(traveled, mae, err)` series.
@@ -92,8 +93,11 @@ impl Server {
         let (url, token_file, local) = match &spec.server {
             Some(url) => (url.clone(), spec.token_file.clone(), None),
             None => {
-                let weight = spec.match_visibility_weight;
-                let local = LocalServer::start_with(|c| c.match_visibility_weight = weight)?;
+                let (weight, score) = (spec.match_visibility_weight, spec.match_score);
+                let local = LocalServer::start_with(|c| {
+                    c.match_visibility_weight = weight;
+                    c.match_score = score;
+                })?;
                 println!(
                     "map server on {} (SQLite {})",
                     local.url,

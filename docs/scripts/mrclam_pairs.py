@@ -13,7 +13,7 @@ A match counts as right when its rotation is within 0.7 rad of the truth (single
 themselves rotated by up to ~0.5 rad against their true local frame: the heading drift before
 the landmarks pin it) and as a half turn when it is more than 2 rad off.
 
-usage: mrclam_pairs.py EXPERIMENT_DIR ECHOMAP_AGENT [extra match flags, e.g. --visibility-weight 0]
+usage: mrclam_pairs.py EXPERIMENT_DIR ECHOMAP_AGENT [extra match flags, e.g. --visibility-weight 0 --score likelihood]
 """
 import glob
 import json

@@ -13,6 +13,26 @@ pub enum LogFormat {
     Json,
 }
 
+/// How the matcher scores a hypothesis's inliers (the location term of seed 001 eq. 18).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum MatchScore {
+    /// MSAC: each inlier scores 1 − d²/gate
+    Msac,
+    /// the inliers' log-likelihood ratio against clutter with a covariance scale fitted to
+    /// each hypothesis (tight fits win over loose ones with as many inliers)
+    Likelihood,
+}
+
+impl MatchScore {
+    pub fn location_score(self) -> echomap_shared::matching::LocationScore {
+        use echomap_shared::matching::LocationScore;
+        match self {
+            MatchScore::Msac => LocationScore::Msac,
+            MatchScore::Likelihood => LocationScore::LIKELIHOOD,
+        }
+    }
+}
+
 /// `echomap-server` settings.
 #[derive(Debug, Clone, Parser)]
 #[command(
@@ -65,6 +85,11 @@ pub struct Config {
     #[arg(long, env = "ECHOMAP_MATCH_VISIBILITY_WEIGHT", default_value_t = 1.0, value_parser = non_negative)]
     pub match_visibility_weight: f64,
 
+    /// How matching scores a hypothesis's inliers: `msac` or `likelihood` (a covariance scale
+    /// fitted per hypothesis). Every replica of a database must use the same value.
+    #[arg(long, env = "ECHOMAP_MATCH_SCORE", value_enum, default_value_t = MatchScore::Msac)]
+    pub match_score: MatchScore,
+
     /// Seconds in-flight requests get to finish after SIGTERM/SIGINT.
     #[arg(long, env = "ECHOMAP_SHUTDOWN_GRACE_S", default_value_t = 30)]
     pub shutdown_grace_s: u64,
@@ -100,6 +125,10 @@ mod tests {
                 .map(|c| c.match_visibility_weight)
         };
         assert_eq!(Config::for_database("x.db").match_visibility_weight, 1.0);
+        assert_eq!(Config::for_database("x.db").match_score, MatchScore::Msac);
+        let score = Config::try_parse_from(["echomap-server", "--match-score", "likelihood"]);
+        assert_eq!(score.unwrap().match_score, MatchScore::Likelihood);
+        assert!(Config::try_parse_from(["echomap-server", "--match-score", "ransac"]).is_err());
         assert_eq!(parse("0").unwrap(), 0.0);
         assert_eq!(parse("2.5").unwrap(), 2.5);
         for bad in ["-1", "NaN", "inf", "heavy"] {

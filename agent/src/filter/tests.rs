@@ -251,6 +251,54 @@ fn a_correct_prior_map_is_matched_and_lowers_the_error() {
 }
 
 #[test]
+fn a_transform_is_adopted_once_the_next_match_confirms_it() {
+    // With two confirmations the first accepted match only waits ("pending");
+    // the transform is adopted at the attempt that finds it again (within 0.1 rad / 0.5 m).
+    // With one (the default), the first accepted match is adopted at once.
+    use super::{PriorSettings, PriorTracker};
+    use crate::run::run_filter_with_prior;
+    let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
+    let out = indoor_sim("user02", 1);
+    let prior = out.truth_map(&map_from_local, 0.3);
+    for confirmations in [2usize, 1] {
+        let settings = PriorSettings {
+            confirmations,
+            ..PriorSettings::default()
+        };
+        let tracker = PriorTracker::new(prior.clone(), settings, 1);
+        let b = run_filter_with_prior(
+            &out.log,
+            Some(&out.truth),
+            cfg(1, 150),
+            false,
+            Some(tracker),
+        )
+        .unwrap();
+        let first = b.matches.iter().position(|m| m.accepted).expect("matched");
+        let adopted = b
+            .matches
+            .iter()
+            .position(|m| m.action == "adopted")
+            .expect("adopted");
+        if confirmations == 1 {
+            assert_eq!(adopted, first, "{:?}", &b.matches[..=adopted]);
+        } else {
+            assert!(adopted > first, "{:?}", &b.matches[..=adopted]);
+            assert!(
+                b.matches[first..adopted]
+                    .iter()
+                    .all(|m| m.action == "pending" || !m.accepted)
+            );
+            let (p, a) = (&b.matches[adopted - 1], &b.matches[adopted]);
+            assert!(
+                p.accepted && (p.angle_rad - a.angle_rad).abs() <= 0.1,
+                "{p:?} {a:?}"
+            );
+        }
+    }
+}
+
+#[test]
 fn an_unrelated_prior_map_is_never_used() {
     // A prior of the same size with the transmitters of another place (positions drawn at
     // random): no match is accepted, nothing is taken over, the run equals the one alone.
