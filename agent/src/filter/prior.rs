@@ -290,7 +290,7 @@ pub struct PriorTracker {
     t0: Option<f64>,
     /// per track, its detections inside the anchor window
     anchors: BTreeMap<u64, Vec<AnchorObs>>,
-    /// the latest accepted transforms that disagree with the one in use, and how many
+    /// the latest accepted transform that disagrees with the one in use, and how many
     /// consecutive accepted matches found them (see `PriorSettings::confirmations`)
     pending: Option<(Isometry2<f64>, usize)>,
     pub events: Vec<MatchEvent>,
