@@ -644,11 +644,9 @@ pub fn run(cli: Cli) -> Result<()> {
                     claim_matched: a.claim_matched,
                     confirmations: a.prior_confirmations,
                     anchor_window_s: a.prior_anchor_s,
-                    matching: echomap_shared::matching::MatchConfig {
-                        location_score: a.prior_match_score.location_score(),
-                        ..echomap_shared::matching::MatchConfig::default()
-                            .with_visibility_weight(a.prior_visibility_weight)
-                    },
+                    matching: echomap_shared::matching::MatchConfig::default()
+                        .with_visibility_weight(a.prior_visibility_weight)
+                        .with_location_score(a.prior_match_score.location_score()),
                     ..Default::default()
                 };
                 crate::filter::PriorTracker::new(p, settings, a.seed)
@@ -678,11 +676,9 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Match(a) => {
             let (user, prior) = (read_map(&a.user)?, read_map(&a.prior)?);
             let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(a.seed);
-            let cfg = echomap_shared::matching::MatchConfig {
-                location_score: a.score.location_score(),
-                ..echomap_shared::matching::MatchConfig::default()
-                    .with_visibility_weight(a.visibility_weight)
-            };
+            let cfg = echomap_shared::matching::MatchConfig::default()
+                .with_visibility_weight(a.visibility_weight)
+                .with_location_score(a.score.location_score());
             let r = echomap_shared::matching::match_maps(&user, &prior, &cfg, &mut rng);
             let j = match_json(&r, &user, &prior);
             if a.json {
@@ -698,11 +694,9 @@ pub fn run(cli: Cli) -> Result<()> {
                 (nalgebra::Isometry2::identity(), Vec::new())
             } else {
                 let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(a.seed);
-                let cfg = echomap_shared::matching::MatchConfig {
-                    location_score: a.score.location_score(),
-                    ..echomap_shared::matching::MatchConfig::default()
-                        .with_visibility_weight(a.visibility_weight)
-                };
+                let cfg = echomap_shared::matching::MatchConfig::default()
+                    .with_visibility_weight(a.visibility_weight)
+                    .with_location_score(a.score.location_score());
                 let r = echomap_shared::matching::match_maps(&user, &prior, &cfg, &mut rng);
                 if !r.accepted {
                     bail!(

@@ -70,10 +70,9 @@ impl Drop for InFlight<'_> {
 impl AppState {
     pub fn new(storage: Storage, tokens: TokenStore, config: Config) -> Self {
         let limiter = WriteLimiter::new(config.rate_limit_per_s, config.rate_limit_burst);
-        let match_cfg = MatchConfig {
-            location_score: config.match_score.location_score(),
-            ..MatchConfig::default().with_visibility_weight(config.match_visibility_weight)
-        };
+        let match_cfg = MatchConfig::default()
+            .with_visibility_weight(config.match_visibility_weight)
+            .with_location_score(config.match_score.location_score());
         AppState {
             storage,
             tokens,

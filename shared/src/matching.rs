@@ -148,6 +148,14 @@ impl MatchConfig {
             ..self
         }
     }
+
+    /// The settings with the inliers scored by `score`.
+    pub fn with_location_score(self, score: LocationScore) -> Self {
+        MatchConfig {
+            location_score: score,
+            ..self
+        }
+    }
 }
 
 /// Outcome of matching.
