@@ -126,6 +126,11 @@ pub struct FilterArgs {
     /// ray fits a detection's range)
     #[arg(long)]
     pub prior_association_window: Option<usize>,
+    /// a prior-map transmitter is no association candidate for a particle holding one of its
+    /// own at least as tight within this squared Mahalanobis distance of it (χ² over x, y;
+    /// 0: off)
+    #[arg(long, default_value_t = FilterConfig::default().prior_shadow_chi2)]
+    pub prior_shadow: f64,
     /// probability that a detection of a known transmitter is an outlier (0: off)
     #[arg(long, default_value_t = FilterConfig::default().outlier_probability)]
     pub outlier_probability: f64,
@@ -167,6 +172,7 @@ impl FilterArgs {
             ("--speed-noise", self.speed_noise),
             ("--speed-std", self.speed_std),
             ("--outlier-density", self.outlier_density),
+            ("--prior-shadow", self.prior_shadow),
         ] {
             anyhow::ensure!(v.is_finite() && v >= 0.0, "{flag} must be ≥ 0, got {v}");
         }
@@ -182,6 +188,7 @@ impl FilterArgs {
             association_gate: self.association_gate,
             association_window: self.association_window,
             prior_association_window,
+            prior_shadow_chi2: self.prior_shadow,
             outlier_probability: self.outlier_probability,
             outlier_density: self.outlier_density,
             speed_noise_mps_per_sqrt_s: self.speed_noise,
@@ -1006,6 +1013,21 @@ mod tests {
         );
         let err = prior_window(&["--prior-association-window", "0"]).unwrap_err();
         assert!(err.to_string().contains("at least 1"), "{err}");
+    }
+
+    #[test]
+    fn the_prior_shadow_gate_is_off_unless_given_and_refuses_a_negative_one() {
+        let shadow = |args: &[&str]| -> Result<f64> {
+            let w = Wrapper::try_parse_from(std::iter::once("t").chain(args.iter().copied()))?;
+            Ok(w.filter.config(1, 0.0)?.prior_shadow_chi2)
+        };
+        assert_eq!(shadow(&[]).unwrap(), 0.0);
+        assert_eq!(shadow(&["--prior-shadow", "9.21"]).unwrap(), 9.21);
+        let err = shadow(&["--prior-shadow=-1"]).unwrap_err();
+        assert!(
+            err.to_string().contains("--prior-shadow must be ≥ 0"),
+            "{err}"
+        );
     }
 
     #[test]

@@ -118,6 +118,17 @@ pub struct FilterConfig {
     pub association_max_spread_m: f64,
     /// prior-map transmitters are association candidates only with at least this existence
     pub prior_min_existence: f64,
+    /// a prior-map transmitter is no association candidate for a particle that already holds
+    /// a transmitter of its own at least as tight (trace of the position covariance) within
+    /// this squared Mahalanobis distance of it (χ² over x, y of both mixtures' moments; 0:
+    /// off). The particle knows that transmitter already; a copy from the prior would start
+    /// a second one beside it, and a crowd map holding two or three versions of a transmitter
+    /// (its contributors' duplicates) offers each in turn — on MRCLAM robot 4's maps grew from
+    /// 17 transmitters alone to 38 with the crowd's map. Default off: the gate brought them
+    /// back to 16–20 and helped robots 1 and 4, but robots 2, 3 and 5, whose own maps are
+    /// poor, gain from the copies and lost, and the end-to-end test's triples were worse
+    /// (README, "Cooperative Channel-SLAM", session 14)
+    pub prior_shadow_chi2: f64,
     /// hexagon circumradius of the visibility grid (m)
     pub hex_size_m: f64,
     /// Beta prior pseudo-counts (ν, ν̄) of seed 001 eq. 12
@@ -161,6 +172,7 @@ impl Default for FilterConfig {
             outlier_density: 1.0 / (10.0 * std::f64::consts::TAU),
             association_max_spread_m: 3.0,
             prior_min_existence: 0.5,
+            prior_shadow_chi2: 0.0,
             hex_size_m: 2.0,
             visibility_prior: (1.0, 1.0),
             track_hold_s: 0.0,

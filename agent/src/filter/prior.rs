@@ -7,7 +7,7 @@
 //! has `min_inliers` agreeing transmitters in the agent's current map, the prior is dropped
 //! (transmitters already taken over by particles stay, as the particles' own).
 
-use super::model::Comp;
+use super::model::{Comp, mixture_moments};
 use super::rbpf::Filter;
 use super::srckf::SqrtGaussian;
 use crate::filter::export::{export_map, track_of};
@@ -18,7 +18,7 @@ use echomap_shared::matching::{
     LocationScore, MatchConfig, MatchResult, fit_rigid_weighted, match_maps, score_transform,
 };
 use echomap_shared::{Beta, HexCell, HexGrid};
-use nalgebra::{Isometry2, Matrix2, Point2, Vector2};
+use nalgebra::{Isometry2, Matrix2, Matrix3, Point2, Vector2, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -38,6 +38,8 @@ pub struct PriorTx {
     /// start a second copy of a transmitter the agent still knows and take the prior's
     /// version instead of associating with its own when it sees it again
     pub claimed: bool,
+    /// mean and covariance of its state (agent frame), for `FilterConfig::prior_shadow_chi2`
+    pub moments: (Vector3<f64>, Matrix3<f64>),
 }
 
 /// Uncertainty of an estimated rigid transform, for inflating what it carries: a point at
@@ -147,6 +149,7 @@ impl Prior {
                 }
                 Some(PriorTx {
                     id: t.id.clone(),
+                    moments: mixture_moments(&comps),
                     comps,
                     existence: t.existence,
                     visibility: t.visibility.clone(),

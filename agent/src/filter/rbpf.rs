@@ -9,7 +9,9 @@
 //! unchanged transmitters through `Arc` (copy-on-write with `Arc::make_mut`).
 
 use super::config::{Association, FilterConfig};
-use super::model::{Comp, Pose, h_toa, h_toa_aoa, initialize, residual_toa, residual_toa_aoa};
+use super::model::{
+    Comp, Pose, h_toa, h_toa_aoa, initialize, mixture_moments, residual_toa, residual_toa_aoa,
+};
 use super::prior::Prior;
 use super::srckf::{self, SqrtGaussian};
 use super::visibility::Visibility;
@@ -17,7 +19,7 @@ use super::vonmises;
 use echomap_shared::log::{Measurement, Snapshot};
 use echomap_shared::mixture::{self, Component};
 use echomap_shared::wrap_angle;
-use nalgebra::{Matrix1, Matrix2, Point2, Vector1, Vector2};
+use nalgebra::{Matrix1, Matrix2, Matrix3, Point2, Vector1, Vector2, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -871,10 +873,26 @@ impl Particle {
             if let Some(prior) = prior {
                 let pose = self.prior_pose();
                 let here = Point2::new(pose.x, pose.y);
+                let own: Vec<(Vector3<f64>, Matrix3<f64>)> = if cfg.prior_shadow_chi2 > 0.0 {
+                    self.txs.iter().map(|t| mixture_moments(&t.comps)).collect()
+                } else {
+                    Vec::new()
+                };
+                let xy_trace = |c: &Matrix3<f64>| c[(0, 0)] + c[(1, 1)];
+                let shadowed = |(pm, pc): &(Vector3<f64>, Matrix3<f64>)| {
+                    own.iter().any(|(om, oc)| {
+                        let d = (pm - om).xy();
+                        let s = (oc + pc).fixed_view::<2, 2>(0, 0).into_owned();
+                        xy_trace(oc) <= xy_trace(pc)
+                            && s.cholesky()
+                                .is_some_and(|ch| d.dot(&ch.solve(&d)) <= cfg.prior_shadow_chi2)
+                    })
+                };
                 for (idx, ptx) in prior.txs.iter().enumerate() {
                     if ptx.existence < cfg.prior_min_existence
                         || ptx.claimed
                         || self.prior_used.contains(&(idx as u32))
+                        || shadowed(&ptx.moments)
                     {
                         continue;
                     }

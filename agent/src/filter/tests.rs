@@ -500,6 +500,59 @@ fn claimed_prior_transmitters_are_no_candidates() {
 }
 
 #[test]
+fn a_prior_copy_of_a_transmitter_the_particle_holds_is_no_candidate() {
+    // The line of sight is lost and regained under a new track; the prior map, set just
+    // before the regained track's first detection, holds that same transmitter. The
+    // particles hold it too (tighter than the prior's copy): with the shadow gate no particle
+    // takes the copy, and the new track closes the loop on the particle's own transmitter.
+    use super::prior::Prior;
+    let scene = regained_los_scene();
+    let mut plain_sum = 0.0;
+    for seed in [1u64, 2, 3] {
+        let out = sim(&scene, seed);
+        let second = out.truth.transmitters[1].track;
+        let map = out.truth_map(&nalgebra::Isometry2::identity(), 0.3);
+        assert_eq!(map.len(), 1, "one transmitter, seen on two tracks");
+        let run = |shadow: f64| {
+            let c = FilterConfig {
+                prior_shadow_chi2: shadow,
+                ..cfg(seed, 200)
+            };
+            let mut f = Filter::new(c, true);
+            for s in &out.log.snapshots {
+                if f.prior().is_none() && s.components.iter().any(|m| m.track == second) {
+                    f.set_prior(Some(Prior::new(
+                        &map,
+                        nalgebra::Isometry2::identity(),
+                        None,
+                        0.5,
+                        (1.0, 1.0),
+                    )));
+                }
+                f.step(s);
+            }
+            assert!(
+                f.prior().is_some(),
+                "seed {seed}: the second track never came"
+            );
+            f.prior_transmitters_used()
+        };
+        let (plain, shadowed) = (run(0.0), run(9.21));
+        assert!(
+            shadowed < 0.01,
+            "seed {seed}: {shadowed} of the weight took the prior's copy with the gate"
+        );
+        plain_sum += plain;
+    }
+    // without the gate the copy does compete (how often depends on the visibility counts)
+    assert!(
+        plain_sum / 3.0 > 0.2,
+        "without the gate: {}",
+        plain_sum / 3.0
+    );
+}
+
+#[test]
 fn a_deferred_association_still_recognizes_a_regained_transmitter() {
     // The scene of `association_recognizes_a_regained_transmitter`, decided over the first
     // 20 detections of the new track, and over 300 — more than the track has, so the
