@@ -878,6 +878,7 @@ impl Particle {
                 } else {
                     Vec::new()
                 };
+                // (the prior as matched: a particle's own transform draw is not applied here)
                 let xy_trace = |c: &Matrix3<f64>| c[(0, 0)] + c[(1, 1)];
                 let shadowed = |(pm, pc): &(Vector3<f64>, Matrix3<f64>)| {
                     own.iter().any(|(om, oc)| {
