@@ -48,22 +48,15 @@ pub struct Comp {
     pub g: SqrtGaussian,
 }
 
-/// Mean and covariance of a mixture's state `[x, y, b]`: its first two moments.
-pub fn mixture_moments(comps: &[Comp]) -> (Vector3<f64>, Matrix3<f64>) {
-    let total: f64 = comps.iter().map(|c| c.weight).sum();
-    let w = |c: &Comp| {
-        if total > 0.0 {
-            c.weight / total
-        } else {
-            1.0 / comps.len() as f64
-        }
-    };
-    let mean: Vector3<f64> = comps.iter().map(|c| c.g.mean * w(c)).sum();
-    let cov: Matrix3<f64> = comps
-        .iter()
-        .map(|c| (c.g.cov() + outer(&(c.g.mean - mean))) * w(c))
-        .sum();
-    (mean, cov)
+/// Mean and covariance of a mixture's state `[x, y, b]` (`mixture::moments` of the shared
+/// crate); None for an empty or weightless mixture.
+pub fn mixture_moments(comps: &[Comp]) -> Option<(Vector3<f64>, Matrix3<f64>)> {
+    echomap_shared::mixture::moments(
+        &comps
+            .iter()
+            .map(|c| echomap_shared::mixture::Component::new(c.weight, c.g.mean, c.g.cov()))
+            .collect::<Vec<_>>(),
+    )
 }
 
 fn outer(v: &Vector3<f64>) -> Matrix3<f64> {

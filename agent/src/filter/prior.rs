@@ -39,7 +39,7 @@ pub struct PriorTx {
     /// version instead of associating with its own when it sees it again
     pub claimed: bool,
     /// mean and covariance of its state (agent frame), for `FilterConfig::prior_shadow_chi2`
-    pub moments: (Vector3<f64>, Matrix3<f64>),
+    pub moments: Option<(Vector3<f64>, Matrix3<f64>)>,
 }
 
 /// Uncertainty of an estimated rigid transform, for inflating what it carries: a point at

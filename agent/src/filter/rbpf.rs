@@ -874,13 +874,19 @@ impl Particle {
                 let pose = self.prior_pose();
                 let here = Point2::new(pose.x, pose.y);
                 let own: Vec<(Vector3<f64>, Matrix3<f64>)> = if cfg.prior_shadow_chi2 > 0.0 {
-                    self.txs.iter().map(|t| mixture_moments(&t.comps)).collect()
+                    self.txs
+                        .iter()
+                        .filter_map(|t| mixture_moments(&t.comps))
+                        .collect()
                 } else {
                     Vec::new()
                 };
                 // (the prior as matched: a particle's own transform draw is not applied here)
                 let xy_trace = |c: &Matrix3<f64>| c[(0, 0)] + c[(1, 1)];
-                let shadowed = |(pm, pc): &(Vector3<f64>, Matrix3<f64>)| {
+                let shadowed = |moments: &Option<(Vector3<f64>, Matrix3<f64>)>| {
+                    let Some((pm, pc)) = moments else {
+                        return false;
+                    };
                     own.iter().any(|(om, oc)| {
                         let d = (pm - om).xy();
                         let s = (oc + pc).fixed_view::<2, 2>(0, 0).into_owned();
@@ -1213,12 +1219,7 @@ fn candidate_log_likelihood(
 /// `max_spread`, and the measured distance (and angle) must lie within 5σ of what its mean
 /// predicts, σ including its spread.
 fn gate(comps: &[Comp], pose: &Pose, m: &Meas, sd: f64, sa: f64, max_spread: f64) -> bool {
-    let Some((mean, cov)) = mixture::moments(
-        &comps
-            .iter()
-            .map(|c| Component::new(c.weight, c.g.mean, c.g.cov()))
-            .collect::<Vec<_>>(),
-    ) else {
+    let Some((mean, cov)) = mixture_moments(comps) else {
         return false;
     };
     let spread = cov.trace().max(0.0).sqrt();
