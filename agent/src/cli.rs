@@ -376,6 +376,11 @@ pub struct MergeArgs {
     /// how a hypothesis's inliers are scored: `msac` or `likelihood`
     #[arg(long, value_enum, default_value_t = MatchScore::Msac)]
     pub score: MatchScore,
+    /// merge an unmatched user transmitter into the nearest prior one within this squared
+    /// Mahalanobis distance (x, y) instead of adding it (the server's `--merge-absorb-chi2`);
+    /// 0: add every unmatched one
+    #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
+    pub absorb_chi2: f64,
 }
 
 fn read_map(path: &Path) -> Result<echomap_shared::TransmitterMap> {
@@ -513,6 +518,11 @@ pub struct CooperativeArgs {
     /// than their covariances in a layout that nearly repeats under a half turn)
     #[arg(long, value_enum)]
     pub match_score: Option<MatchScore>,
+    /// the loopback server's `--merge-absorb-chi2`: an upload's unmatched transmitter within
+    /// this squared Mahalanobis distance (x, y) of a map transmitter is merged into it instead
+    /// of added; default 0 (off)
+    #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
+    pub merge_absorb_chi2: f64,
     /// with --dataset mrclam: the robots that act as the reference, each in turn (the others
     /// build its map); default all five
     #[arg(long, value_delimiter = ',', default_value = "1,2,3,4,5")]
@@ -718,7 +728,7 @@ pub fn run(cli: Cli) -> Result<()> {
                 &user,
                 &iso,
                 &pairs,
-                &Default::default(),
+                &echomap_shared::merging::MergeConfig::default().with_absorb_chi2(a.absorb_chi2),
             )?;
             std::fs::write(&a.out, merged.to_json_pretty())
                 .with_context(|| format!("writing {}", a.out.display()))?;
@@ -944,6 +954,7 @@ fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
         progress: true,
         match_visibility_weight: weight,
         match_score: score,
+        merge_absorb_chi2: a.merge_absorb_chi2,
     };
     let particles = |n: usize| vec!["--particles".to_string(), n.to_string()];
     match a.dataset.as_slice() {
@@ -1071,6 +1082,17 @@ mod tests {
             let err = weight(&[bad]).unwrap_err();
             assert!(err.to_string().contains("non-negative"), "{err}");
         }
+        let absorb = |args: &[&str]| {
+            let base = ["echomap-agent", "experiment", "cooperative", "--out", "o"];
+            match Cli::try_parse_from(base.iter().chain(args))?.command {
+                Command::Experiment(ExperimentCommand::Cooperative(a)) => Ok(a.merge_absorb_chi2),
+                _ => panic!("not the cooperative experiment"),
+            }
+        };
+        assert_eq!(absorb(&[]).unwrap(), 0.0);
+        assert_eq!(absorb(&["--merge-absorb-chi2", "9.21"]).unwrap(), 9.21);
+        let err: clap::Error = absorb(&["--merge-absorb-chi2=-3"]).unwrap_err();
+        assert!(err.to_string().contains("non-negative"), "{err}");
         let run = Cli::try_parse_from([
             "echomap-agent",
             "run",

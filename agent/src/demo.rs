@@ -35,6 +35,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         progress: true,
         match_visibility_weight: 1.0,
         match_score: echomap_server::config::MatchScore::Msac,
+        merge_absorb_chi2: 0.0,
     };
     println!(
         "echomap demo: {} users build a map of `indoor` on a fresh map server, then the reference user runs alone and with it ({} particles each)",

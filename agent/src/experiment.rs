@@ -28,9 +28,11 @@ pub struct ExperimentSpec {
     pub reference_args: Vec<String>,
     pub out: PathBuf,
     pub progress: bool,
-    /// the started loopback server's `--match-visibility-weight` and `--match-score`
+    /// the started loopback server's `--match-visibility-weight`, `--match-score` and
+    /// `--merge-absorb-chi2`
     pub match_visibility_weight: f64,
     pub match_score: echomap_server::config::MatchScore,
+    pub merge_absorb_chi2: f64,
 }
 
 /// One evaluated configuration: its label and the per-run `(traveled, mae, err)` series.
@@ -94,9 +96,11 @@ impl Server {
             Some(url) => (url.clone(), spec.token_file.clone(), None),
             None => {
                 let (weight, score) = (spec.match_visibility_weight, spec.match_score);
+                let absorb = spec.merge_absorb_chi2;
                 let local = LocalServer::start_with(|c| {
                     c.match_visibility_weight = weight;
                     c.match_score = score;
+                    c.merge_absorb_chi2 = absorb;
                 })?;
                 println!(
                     "map server on {} (SQLite {})",

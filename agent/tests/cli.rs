@@ -335,6 +335,46 @@ fn match_and_merge_commands() {
             .iter()
             .all(|t| (t.reliability_m - 40.0).abs() < 1e-9)
     );
+    // a user map holding a second copy of one transmitter: added as a new one by default,
+    // merged into its prior counterpart with --absorb-chi2
+    let mut twice = user.transmitters().to_vec();
+    let mut copy = twice[2].clone();
+    copy.id = "copy".into();
+    copy.components[0].mean.x += 0.05;
+    twice.push(copy);
+    let tf = dir.path().join("twice.json");
+    let twice = echomap_shared::TransmitterMap::new(2.0, twice).unwrap();
+    std::fs::write(&tf, twice.to_json_pretty()).unwrap();
+    for (absorb, count, p2_reliability) in [("0", 8, 40.0), ("9.21", 7, 60.0)] {
+        let out = dir.path().join(format!("twice-{absorb}.json"));
+        let st = agent()
+            .args(["merge", "--absorb-chi2", absorb, "--out"])
+            .arg(&out)
+            .arg(&pf)
+            .arg(&tf)
+            .output()
+            .unwrap();
+        assert!(
+            st.status.success(),
+            "{}",
+            String::from_utf8_lossy(&st.stderr)
+        );
+        let m = echomap_shared::TransmitterMap::from_json(&std::fs::read_to_string(&out).unwrap())
+            .unwrap();
+        assert_eq!(m.len(), count, "--absorb-chi2 {absorb}");
+        let p2 = m.transmitters().iter().find(|t| t.id == "p2").unwrap();
+        assert!((p2.reliability_m - p2_reliability).abs() < 1e-9, "{absorb}");
+    }
+    let st = agent()
+        .args(["merge", "--absorb-chi2=-1", "--out"])
+        .arg(dir.path().join("never.json"))
+        .arg(&pf)
+        .arg(&tf)
+        .output()
+        .unwrap();
+    assert!(!st.status.success());
+    assert!(String::from_utf8_lossy(&st.stderr).contains("non-negative"));
+    assert!(!dir.path().join("never.json").exists());
     // an unrelated (mirrored) user map is rejected and nothing is written
     let mirrored = chiral_map(nalgebra::Isometry2::identity(), "m")
         .transformed(&nalgebra::Isometry2::identity());

@@ -90,6 +90,13 @@ pub struct Config {
     #[arg(long, env = "ECHOMAP_MATCH_SCORE", value_enum, default_value_t = MatchScore::Msac)]
     pub match_score: MatchScore,
 
+    /// Merge an upload's unmatched transmitter into the nearest map transmitter whose x, y lies
+    /// within this squared Mahalanobis distance (sum of both covariances; 2 degrees of freedom,
+    /// e.g. 9.21 for 99 %) instead of adding it as a new one; 0 adds every unmatched
+    /// transmitter (seed 001). Every replica of a database must use the same value.
+    #[arg(long, env = "ECHOMAP_MERGE_ABSORB_CHI2", default_value_t = 0.0, value_parser = non_negative)]
+    pub merge_absorb_chi2: f64,
+
     /// Seconds in-flight requests get to finish after SIGTERM/SIGINT.
     #[arg(long, env = "ECHOMAP_SHUTDOWN_GRACE_S", default_value_t = 30)]
     pub shutdown_grace_s: u64,
@@ -129,6 +136,10 @@ mod tests {
         let score = Config::try_parse_from(["echomap-server", "--match-score", "likelihood"]);
         assert_eq!(score.unwrap().match_score, MatchScore::Likelihood);
         assert!(Config::try_parse_from(["echomap-server", "--match-score", "ransac"]).is_err());
+        assert_eq!(Config::for_database("x.db").merge_absorb_chi2, 0.0);
+        let absorb = Config::try_parse_from(["echomap-server", "--merge-absorb-chi2", "9.21"]);
+        assert_eq!(absorb.unwrap().merge_absorb_chi2, 9.21);
+        assert!(Config::try_parse_from(["echomap-server", "--merge-absorb-chi2", "-1"]).is_err());
         assert_eq!(parse("0").unwrap(), 0.0);
         assert_eq!(parse("2.5").unwrap(), 2.5);
         for bad in ["-1", "NaN", "inf", "heavy"] {

@@ -73,13 +73,14 @@ impl AppState {
         let match_cfg = MatchConfig::default()
             .with_visibility_weight(config.match_visibility_weight)
             .with_location_score(config.match_score.location_score());
+        let merge_cfg = MergeConfig::default().with_absorb_chi2(config.merge_absorb_chi2);
         AppState {
             storage,
             tokens,
             limiter,
             config,
             match_cfg,
-            merge_cfg: MergeConfig::default(),
+            merge_cfg,
             map_locks: Mutex::default(),
             merge_queues: Mutex::default(),
             in_flight: Mutex::default(),

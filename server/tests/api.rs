@@ -1235,3 +1235,56 @@ mod oneshot {
         assert_eq!(body["version"], 0);
     }
 }
+
+#[tokio::test]
+async fn merge_absorb_chi2_folds_an_uploads_second_copy_into_the_map() {
+    let truth = world(1, 25);
+    let first = contribution(user_map(&truth, 100, 1.0, 0.1), "a");
+    // the second user mapped transmitter 0 twice (two tracks of it never associated)
+    let mut second = user_map(&truth, 200, 1.0, 0.1);
+    let txs = second["transmitters"].as_array_mut().unwrap();
+    let mut copy = txs[0].clone();
+    copy["id"] = json!("copy");
+    let x = copy["components"][0]["mean"][0].as_f64().unwrap();
+    copy["components"][0]["mean"][0] = json!(x + 0.05);
+    txs.push(copy);
+    let second = contribution(second, "b");
+    for absorb in [0.0, 9.21] {
+        let s = TestServer::start_with(|cfg| cfg.merge_absorb_chi2 = absorb).await;
+        let c = client();
+        create_map(&c, &s, "hall").await;
+        let r = post_contribution(&c, &s, "hall", ALICE, "k-a", &first).await;
+        assert_eq!(r.status(), 201);
+        let r = post_contribution(&c, &s, "hall", BOB, "k-b", &second).await;
+        assert_eq!(r.status(), 201);
+        let rb: Value = r.json().await.unwrap();
+        let cur: Value = c
+            .get(s.url("/v1/maps/hall"))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        let ids: Vec<&str> = cur["transmitters"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|t| t["id"].as_str().unwrap())
+            .collect();
+        let (merged, added) = (
+            rb["merged"].as_u64().unwrap(),
+            rb["added"].as_u64().unwrap(),
+        );
+        assert_eq!(merged + added, 26, "{rb}");
+        assert_eq!(ids.len() as u64, 25 + added, "{absorb}");
+        if absorb == 0.0 {
+            assert!(added >= 1, "{rb}");
+            assert!(ids.contains(&"copy"));
+        } else {
+            assert_eq!(added, 0, "{rb}");
+            assert!(!ids.contains(&"copy"));
+        }
+        s.stop().await;
+    }
+}

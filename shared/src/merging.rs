@@ -10,6 +10,14 @@
 //! Unmatched user transmitters are added (with their existence); unmatched prior
 //! transmitters are kept; prior ids never change, new ids are made unique. Merging into an
 //! empty prior returns the user map unchanged: it defines the map frame.
+//!
+//! Departure (optional, [`MergeConfig::absorb_chi2`]; off by default): an unmatched user
+//! transmitter that is statistically the same place as a prior transmitter — its x, y within a
+//! squared Mahalanobis distance of the prior's, under the sum of both covariances — is merged
+//! into the nearest such transmitter by the same rule instead of being added. RANSAC takes at
+//! most one correspondence per transmitter, so a landmark a user mapped twice (once per track
+//! of it, when association did not close the loop) would otherwise enter the crowd's map as a
+//! second copy on every upload (README, "Cooperative Channel-SLAM", session 15).
 
 use crate::map::{MapError, Transmitter, TransmitterMap};
 use crate::mixture::{self, Component};
@@ -21,19 +29,49 @@ use std::collections::HashSet;
 pub struct MergeConfig {
     /// most components per merged transmitter; default 4
     pub max_components: usize,
+    /// an unmatched user transmitter within this squared Mahalanobis distance (x, y; 2 degrees
+    /// of freedom, e.g. 9.21 for 99 %) of a prior transmitter is merged into the nearest one
+    /// instead of being added; 0 (default) adds every unmatched transmitter (seed 001)
+    pub absorb_chi2: f64,
 }
 
 impl Default for MergeConfig {
     fn default() -> Self {
-        MergeConfig { max_components: 4 }
+        MergeConfig {
+            max_components: 4,
+            absorb_chi2: 0.0,
+        }
     }
+}
+
+impl MergeConfig {
+    /// These settings with the absorption gate `chi2` (see [`MergeConfig::absorb_chi2`]).
+    pub fn with_absorb_chi2(self, chi2: f64) -> Self {
+        MergeConfig {
+            absorb_chi2: chi2,
+            ..self
+        }
+    }
+}
+
+/// The squared Mahalanobis distance of two transmitters' x, y under the sum of their
+/// covariances (first two moments of each mixture); `None` when that sum is singular.
+fn xy_distance2(a: &Transmitter, b: &Transmitter) -> Option<f64> {
+    let (ma, ca) = a.moments();
+    let (mb, cb) = b.moments();
+    let d = (ma - mb).xy();
+    let s = (ca + cb).fixed_view::<2, 2>(0, 0).into_owned();
+    Some(s.cholesky()?.solve(&d).dot(&d))
 }
 
 /// Counts of what a merge did.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct MergeStats {
+    /// user transmitters merged into prior ones (matched, or absorbed)
     pub merged: usize,
+    /// user transmitters added as new ones
     pub added: usize,
+    /// prior transmitters left unchanged
     pub kept: usize,
 }
 
@@ -95,13 +133,16 @@ pub fn merge_maps(
     }
     let moved = user.transformed(map_from_agent);
     let mut out: Vec<Transmitter> = prior.transmitters().to_vec();
+    let n_prior = out.len();
     let mut matched_user = vec![false; moved.len()];
+    let mut touched = vec![false; n_prior];
     let mut merged = 0;
     for &(ui, pi) in correspondences {
-        if ui >= moved.len() || pi >= out.len() || matched_user[ui] {
+        if ui >= moved.len() || pi >= n_prior || matched_user[ui] {
             continue;
         }
         matched_user[ui] = true;
+        touched[pi] = true;
         out[pi] = merge_pair(&moved.transmitters()[ui], &out[pi], cfg);
         merged += 1;
     }
@@ -110,6 +151,19 @@ pub fn merge_maps(
     for (ui, t) in moved.transmitters().iter().enumerate() {
         if matched_user[ui] {
             continue;
+        }
+        if cfg.absorb_chi2 > 0.0 {
+            // only prior transmitters are candidates: an upload never absorbs itself
+            let nearest = (0..n_prior)
+                .filter_map(|pi| Some((pi, xy_distance2(t, &out[pi])?)))
+                .filter(|&(_, d2)| d2 <= cfg.absorb_chi2)
+                .min_by(|a, b| a.1.total_cmp(&b.1));
+            if let Some((pi, _)) = nearest {
+                touched[pi] = true;
+                out[pi] = merge_pair(t, &out[pi], cfg);
+                merged += 1;
+                continue;
+            }
         }
         let mut t = t.clone();
         if ids.contains(&t.id) {
@@ -124,7 +178,7 @@ pub fn merge_maps(
         out.push(t);
         added += 1;
     }
-    let kept = prior.len() - merged;
+    let kept = touched.iter().filter(|&&t| !t).count();
     let map = TransmitterMap::new(prior.hex_size_m(), out)?;
     Ok((
         map,

@@ -579,6 +579,62 @@ fn merging_a_map_with_itself_keeps_means_and_adds_reliabilities() {
     assert_eq!(stats.added, m.len());
 }
 
+#[test]
+fn absorption_merges_an_uploads_second_copy_of_a_prior_transmitter_and_nothing_else() {
+    // per seed: a matched upload that also holds a second copy of a matched transmitter (the
+    // user mapped it twice) and one new transmitter 1 m from a prior one (squared distance
+    // ≈ 22 under the summed covariance, σ = 0.15 m each: a different place)
+    for seed in 0..20 {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let c = case(&mut rng, 10, 0, 0, 0.0, 0.05);
+        let agent_from_map = c.truth.inverse();
+        let mut user = c.user.transmitters().to_vec();
+        let (dup_of, new_near) = (3, 7);
+        let p = &c.prior.transmitters()[dup_of].moments().0;
+        let q = agent_from_map * Point2::new(p.x + 0.1, p.y - 0.1);
+        user.push(tx("copy".into(), q.x, q.y, p.z, &mut rng, 0.0));
+        let n = &c.prior.transmitters()[new_near].moments().0;
+        let q = agent_from_map * Point2::new(n.x + 1.0, n.y);
+        user.push(tx("new".into(), q.x, q.y, n.z, &mut rng, 0.0));
+        let user = TransmitterMap::new(2.0, user).unwrap();
+        let pairs: Vec<(usize, usize)> = c.pairs.iter().map(|(&u, &p)| (u, p)).collect();
+        let merge = |cfg: &MergeConfig| merge_maps(&c.prior, &user, &c.truth, &pairs, cfg).unwrap();
+
+        let (plain, s) = merge(&MergeConfig::default());
+        assert_eq!((s.merged, s.added, s.kept), (10, 2, 0), "seed {seed}");
+        assert_eq!(plain.len(), 12);
+
+        let (absorbed, s) = merge(&MergeConfig::default().with_absorb_chi2(9.21));
+        assert_eq!((s.merged, s.added, s.kept), (11, 1, 0), "seed {seed}");
+        assert_eq!(absorbed.len(), 11);
+        assert!(absorbed.transmitters().iter().any(|t| t.id == "new"));
+        assert!(absorbed.transmitters().iter().all(|t| t.id != "copy"));
+        // the copy's reliability went into the transmitter it copies, not elsewhere
+        let rel = |m: &TransmitterMap, i: usize| m.transmitters()[i].reliability_m;
+        let copy_rel = user.transmitters()[10].reliability_m;
+        for i in 0..10 {
+            let extra = if i == dup_of { copy_rel } else { 0.0 };
+            assert!(
+                (rel(&absorbed, i) - rel(&plain, i) - extra).abs() < 1e-9,
+                "seed {seed}"
+            );
+        }
+        // without correspondences the gate alone finds every transmitter's prior copy, and
+        // still adds the new one
+        let (alone, s) = merge_maps(
+            &c.prior,
+            &user,
+            &c.truth,
+            &[],
+            &MergeConfig::default().with_absorb_chi2(9.21),
+        )
+        .unwrap();
+        assert_eq!((s.merged, s.added), (11, 1), "seed {seed}");
+        assert_eq!(s.kept, 0);
+        assert_eq!(alone.len(), 11);
+    }
+}
+
 /// Standard normal draw (Box–Muller) for the fit tests.
 fn gauss(rng: &mut ChaCha8Rng) -> f64 {
     let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
