@@ -54,14 +54,11 @@ impl MergeConfig {
     }
 }
 
-/// The squared Mahalanobis distance of two transmitters' x, y under the sum of their
-/// covariances (first two moments of each mixture); `None` when that sum is singular.
+/// The squared Mahalanobis distance of two transmitters' x, y (moments of each mixture).
 fn xy_distance2(a: &Transmitter, b: &Transmitter) -> Option<f64> {
     let (ma, ca) = a.moments();
     let (mb, cb) = b.moments();
-    let d = (ma - mb).xy();
-    let s = (ca + cb).fixed_view::<2, 2>(0, 0).into_owned();
-    Some(s.cholesky()?.solve(&d).dot(&d))
+    mixture::xy_distance2((&ma, &ca), (&mb, &cb))
 }
 
 /// Counts of what a merge did.

@@ -51,6 +51,18 @@ pub fn merge_pair(a: &Component, b: &Component) -> Component {
     }
 }
 
+/// Squared Mahalanobis distance between two estimates' x, y (means `ma`, `mb`, covariances
+/// `ca`, `cb` over `[x, y, b]`) under the sum of their covariances — independent estimates of
+/// one place differ by that; `None` when the sum is singular.
+pub fn xy_distance2(
+    (ma, ca): (&Vector3<f64>, &Matrix3<f64>),
+    (mb, cb): (&Vector3<f64>, &Matrix3<f64>),
+) -> Option<f64> {
+    let d = (ma - mb).xy();
+    let s = (ca + cb).fixed_view::<2, 2>(0, 0).into_owned();
+    Some(s.cholesky()?.solve(&d).dot(&d))
+}
+
 /// Overall mean and covariance of a (not necessarily normalized) mixture.
 pub fn moments(components: &[Component]) -> Option<(Vector3<f64>, Matrix3<f64>)> {
     let total: f64 = components.iter().map(|c| c.weight).sum();

@@ -888,11 +888,9 @@ impl Particle {
                         return false;
                     };
                     own.iter().any(|(om, oc)| {
-                        let d = (pm - om).xy();
-                        let s = (oc + pc).fixed_view::<2, 2>(0, 0).into_owned();
                         xy_trace(oc) <= xy_trace(pc)
-                            && s.cholesky()
-                                .is_some_and(|ch| d.dot(&ch.solve(&d)) <= cfg.prior_shadow_chi2)
+                            && echomap_shared::mixture::xy_distance2((pm, pc), (om, oc))
+                                .is_some_and(|d2| d2 <= cfg.prior_shadow_chi2)
                     })
                 };
                 for (idx, ptx) in prior.txs.iter().enumerate() {
