@@ -111,6 +111,13 @@ pub struct FilterArgs {
     /// AoA noise floor the filter assumes (rad)
     #[arg(long, default_value_t = NoiseModel::default().aoa_floor_rad)]
     pub aoa_std: f64,
+    /// distance noise at an SNR of 0 dB (m), falling as 10^(−SNR/20) and added in variance to
+    /// --distance-std
+    #[arg(long, default_value_t = NoiseModel::default().distance_at_0db_m)]
+    pub distance_at_0db: f64,
+    /// AoA noise at an SNR of 0 dB (rad), as --distance-at-0db
+    #[arg(long, default_value_t = NoiseModel::default().aoa_at_0db_rad)]
+    pub aoa_at_0db: f64,
     /// likelihood level of "no association" (1/(m·rad); ToA-only 1/m): lower associates more readily
     #[arg(long, default_value_t = FilterConfig::default().association_p0)]
     pub association_p0: f64,
@@ -195,8 +202,9 @@ impl FilterArgs {
             speed_measurement_std_mps: self.speed_std,
             noise: NoiseModel {
                 distance_floor_m: self.distance_std,
+                distance_at_0db_m: self.distance_at_0db,
                 aoa_floor_rad: self.aoa_std,
-                ..NoiseModel::default()
+                aoa_at_0db_rad: self.aoa_at_0db,
             },
             ..FilterConfig::default()
         })
@@ -882,7 +890,7 @@ fn crowd_command(a: &CrowdArgs) -> Result<()> {
 
 /// Filter flags for MRCLAM (README: noise floors and the odometry's heading error measured
 /// from the data, line of sight only).
-pub const MRCLAM_RUN_ARGS: [&str; 14] = [
+pub const MRCLAM_RUN_ARGS: [&str; 16] = [
     "--heading-noise",
     "0.006",
     "--heading-noise-per-turn",
@@ -890,7 +898,11 @@ pub const MRCLAM_RUN_ARGS: [&str; 14] = [
     "--b-prior",
     "zero",
     "--distance-std",
-    "0.15",
+    "0.05",
+    // with the importer's SNR (20 dB at 1 m, −20 dB per decade): σ_d = 0.05 ⊕ 0.06·range, 1.5×
+    // the range residual the data shows (≈ 0.04·range)
+    "--distance-at-0db",
+    "0.6",
     "--aoa-std",
     "0.05",
     "--association-p0",

@@ -31,8 +31,17 @@ pub struct ImportOptions {
     pub track_gap_s: f64,
     /// snapshot rate (Hz)
     pub rate_hz: f64,
-    /// SNR written for every measurement (dB); MRCLAM has none
+    /// SNR written for a measurement at 1 m range (dB). MRCLAM has none; a camera's barcode
+    /// image shrinks as 1/range, so the importer writes `snr_db − 20·log10(range / 1 m)`, and
+    /// the filter's SNR noise model (`σ = floor ⊕ at_0db·10^(−SNR/20)`) then gives a range
+    /// noise that grows in proportion to the range, as the data's residuals do (README)
     pub snr_db: f64,
+}
+
+/// The SNR (dB) written for a detection at `range_m`, given the SNR at 1 m: 20 dB less per
+/// decade of range (a target whose image shrinks as 1/range).
+pub fn snr_at_range(snr_at_1m_db: f64, range_m: f64) -> f64 {
+    snr_at_1m_db - 20.0 * range_m.log10()
 }
 
 /// Rows of a whitespace-separated MRCLAM file; `#` lines are comments. Errors name the line.
@@ -213,7 +222,7 @@ pub fn import(dir: &Path, opts: ImportOptions) -> Result<(MeasurementLog, Ground
                 track,
                 d: range,
                 aoa: Some(wrap_angle(bearing)),
-                snr_db: opts.snr_db,
+                snr_db: snr_at_range(opts.snr_db, range),
             });
         }
         components.sort_by_key(|c| c.track);
@@ -356,6 +365,15 @@ mod tests {
                 assert!((c.d - d).abs() < 0.06, "{} vs {d}", c.d);
             }
         }
+        // the SNR falls 20 dB per decade of range: 20 dB at 1 m, 20 − 20·log10(d) here
+        for c in &comps {
+            let want = 20.0 - 20.0 * c.d.log10();
+            assert!((c.snr_db - want).abs() < 1e-9, "{} vs {want}", c.snr_db);
+        }
+        assert!(
+            comps[0].d > comps[1].d && comps[0].snr_db < comps[1].snr_db,
+            "a farther detection has the lower SNR"
+        );
         // gyro 0 and speed 0.5 → dead reckoning follows the truth
         let dr = dead_reckoning(&log);
         let last = truth.poses.last().unwrap();
