@@ -131,6 +131,11 @@ pub struct Estimator {
     pub track_loss_rate_hz: f64,
     /// highest interaction order traced (0, 1 or 2)
     pub max_order: u8,
+    /// components whose track spans less than this travelled distance (m, first to last
+    /// detection) are left out of the log, as seed 002 §6.1 does with KEST's output ("only
+    /// signal components that are observable for a user traveled distance of at least 35 m
+    /// are … used"); 0 keeps every component. An offline selection: it needs the whole track
+    pub min_track_distance_m: f64,
 }
 
 impl Default for Estimator {
@@ -145,6 +150,7 @@ impl Default for Estimator {
             fading_correlation_m: 2.0,
             track_loss_rate_hz: 0.01,
             max_order: 2,
+            min_track_distance_m: 0.0,
         }
     }
 }
@@ -318,6 +324,7 @@ impl Scenario {
         non_negative("estimator.fading_std_db", e.fading_std_db)?;
         positive("estimator.fading_correlation_m", e.fading_correlation_m)?;
         non_negative("estimator.track_loss_rate_hz", e.track_loss_rate_hz)?;
+        non_negative("estimator.min_track_distance_m", e.min_track_distance_m)?;
         if e.max_order > 2 {
             return Err(invalid(
                 "estimator.max_order",

@@ -37,6 +37,7 @@ use nalgebra::{Isometry2, Point2};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
+use std::collections::BTreeMap;
 
 /// The simulator's output: the log an agent consumes and the ground truth beside it.
 #[derive(Debug, Clone)]
@@ -316,6 +317,10 @@ pub fn simulate(
         });
     }
 
+    if est.min_track_distance_m > 0.0 {
+        drop_short_tracks(&mut snapshots, &mut true_tx, step, est.min_track_distance_m);
+    }
+
     let header = LogHeader {
         format: LOG_FORMAT.to_string(),
         snapshot_rate_hz: scenario.snapshot_rate_hz,
@@ -337,6 +342,32 @@ pub fn simulate(
         log: MeasurementLog { header, snapshots },
         truth,
     })
+}
+
+/// Removes the components of every track whose first and last detections lie less than
+/// `min_m` of travel apart (`step` metres per snapshot), and their true transmitters.
+fn drop_short_tracks(
+    snapshots: &mut [Snapshot],
+    true_tx: &mut Vec<TrueTransmitter>,
+    step: f64,
+    min_m: f64,
+) {
+    let mut span: BTreeMap<u64, (usize, usize)> = BTreeMap::new();
+    for (k, s) in snapshots.iter().enumerate() {
+        for m in &s.components {
+            span.entry(m.track)
+                .and_modify(|e| e.1 = k)
+                .or_insert((k, k));
+        }
+    }
+    let keep = |track: u64| {
+        span.get(&track)
+            .is_some_and(|&(a, b)| (b - a) as f64 * step >= min_m)
+    };
+    for s in snapshots.iter_mut() {
+        s.components.retain(|m| keep(m.track));
+    }
+    true_tx.retain(|t| keep(t.track));
 }
 
 /// Noise-free virtual transmitters (world frame) that are detectable somewhere along a track,

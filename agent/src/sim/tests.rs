@@ -162,6 +162,63 @@ fn random_track_losses_renew_ids() {
     assert!((4..=20).contains(&ids), "{ids} ids");
 }
 
+/// Per track id: (first, last) snapshot index of its detections.
+fn track_spans(out: &super::simulate::SimOutput) -> HashMap<u64, (usize, usize)> {
+    let mut span = HashMap::new();
+    for (k, s) in out.log.snapshots.iter().enumerate() {
+        for m in &s.components {
+            span.entry(m.track)
+                .and_modify(|e: &mut (usize, usize)| e.1 = k)
+                .or_insert((k, k));
+        }
+    }
+    span
+}
+
+#[test]
+fn short_tracks_are_left_out_as_seed_002_does() {
+    let mut all = urban();
+    all.estimator.min_track_distance_m = 0.0;
+    let paper = urban();
+    assert_eq!(paper.estimator.min_track_distance_m, 35.0);
+    let track = &paper.tracks[0];
+    let step = track.speed_mps / paper.snapshot_rate_hz;
+    for seed in [1, 2] {
+        let full = simulate(&all, &track.name, opts(seed)).unwrap();
+        let kept = simulate(&paper, &track.name, opts(seed)).unwrap();
+        let (full_span, kept_span) = (track_spans(&full), track_spans(&kept));
+        // the kept tracks are exactly the long ones of the unfiltered run, with the same
+        // detections (the selection happens after the random draws)
+        let long: Vec<u64> = full_span
+            .iter()
+            .filter(|(_, (a, b))| (b - a) as f64 * step >= 35.0)
+            .map(|(t, _)| *t)
+            .collect();
+        assert!(
+            !long.is_empty() && long.len() < full_span.len(),
+            "seed {seed}"
+        );
+        let mut kept_ids: Vec<u64> = kept_span.keys().copied().collect();
+        let mut long_ids = long.clone();
+        kept_ids.sort_unstable();
+        long_ids.sort_unstable();
+        assert_eq!(kept_ids, long_ids, "seed {seed}");
+        for (a, b) in full.log.snapshots.iter().zip(&kept.log.snapshots) {
+            let expect: Vec<_> = a
+                .components
+                .iter()
+                .filter(|m| long.contains(&m.track))
+                .collect();
+            assert_eq!(expect, b.components.iter().collect::<Vec<_>>());
+        }
+        // the truth lists the transmitters of the kept tracks only
+        let mut truth_ids: Vec<u64> = kept.truth.transmitters.iter().map(|t| t.track).collect();
+        truth_ids.sort_unstable();
+        assert_eq!(truth_ids, long_ids, "seed {seed}");
+        assert_eq!(full.truth.poses, kept.truth.poses);
+    }
+}
+
 #[test]
 fn unresolvable_paths_are_reported_once() {
     // Single antenna (delay resolution only). A wall just behind the track line (y = −0.5):
@@ -278,6 +335,10 @@ fn bad_scenarios_name_the_field() {
         (
             "estimator.max_order",
             Box::new(|v| v["estimator"]["max_order"] = serde_json::json!(3)),
+        ),
+        (
+            "estimator.min_track_distance_m",
+            Box::new(|v| v["estimator"]["min_track_distance_m"] = serde_json::json!(-35.0)),
         ),
         ("tracks", Box::new(|v| v["tracks"] = serde_json::json!([]))),
         (
