@@ -138,6 +138,10 @@ pub struct FilterArgs {
     /// 0: off)
     #[arg(long, default_value_t = FilterConfig::default().prior_shadow_chi2)]
     pub prior_shadow: f64,
+    /// weight of the visibility term in association (seed 001 eq. 19), own and prior
+    /// candidates alike: 1 the paper's term, 0 the measurement alone
+    #[arg(long, default_value_t = FilterConfig::default().association_visibility_weight)]
+    pub association_visibility_weight: f64,
     /// probability that a detection of a known transmitter is an outlier (0: off)
     #[arg(long, default_value_t = FilterConfig::default().outlier_probability)]
     pub outlier_probability: f64,
@@ -180,6 +184,10 @@ impl FilterArgs {
             ("--speed-std", self.speed_std),
             ("--outlier-density", self.outlier_density),
             ("--prior-shadow", self.prior_shadow),
+            (
+                "--association-visibility-weight",
+                self.association_visibility_weight,
+            ),
         ] {
             anyhow::ensure!(v.is_finite() && v >= 0.0, "{flag} must be ≥ 0, got {v}");
         }
@@ -196,6 +204,7 @@ impl FilterArgs {
             association_window: self.association_window,
             prior_association_window,
             prior_shadow_chi2: self.prior_shadow,
+            association_visibility_weight: self.association_visibility_weight,
             outlier_probability: self.outlier_probability,
             outlier_density: self.outlier_density,
             speed_noise_mps_per_sqrt_s: self.speed_noise,
@@ -890,7 +899,7 @@ fn crowd_command(a: &CrowdArgs) -> Result<()> {
 
 /// Filter flags for MRCLAM (README: noise floors and the odometry's heading error measured
 /// from the data, line of sight only).
-pub const MRCLAM_RUN_ARGS: [&str; 16] = [
+pub const MRCLAM_RUN_ARGS: [&str; 18] = [
     "--heading-noise",
     "0.006",
     "--heading-noise-per-turn",
@@ -909,6 +918,10 @@ pub const MRCLAM_RUN_ARGS: [&str; 16] = [
     "1e-4",
     "--association-gate",
     "30",
+    // the camera sees a landmark only when it faces it: the hex-cell visibility counts would
+    // hold every landmark behind it as "not seen" there (README, session 20)
+    "--association-visibility-weight",
+    "0",
 ];
 
 /// The cooperative experiment's matching visibility weight: as given, else 1 — and 0 on
@@ -1049,6 +1062,22 @@ mod tests {
         let err = shadow(&["--prior-shadow=-1"]).unwrap_err();
         assert!(
             err.to_string().contains("--prior-shadow must be ≥ 0"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn association_weighs_visibility_fully_unless_told_and_not_on_mrclam() {
+        let weight = |args: &[&str]| -> Result<f64> {
+            let w = Wrapper::try_parse_from(std::iter::once("t").chain(args.iter().copied()))?;
+            Ok(w.filter.config(1, 0.0)?.association_visibility_weight)
+        };
+        assert_eq!(weight(&[]).unwrap(), 1.0);
+        assert_eq!(weight(&MRCLAM_RUN_ARGS).unwrap(), 0.0);
+        let err = weight(&["--association-visibility-weight=-0.5"]).unwrap_err();
+        assert!(
+            err.to_string()
+                .contains("--association-visibility-weight must be ≥ 0"),
             "{err}"
         );
     }

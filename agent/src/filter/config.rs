@@ -129,6 +129,12 @@ pub struct FilterConfig {
     /// poor, gain from the copies and lost, and the end-to-end test's triples were worse
     /// (README, "Cooperative Channel-SLAM", session 14)
     pub prior_shadow_chi2: f64,
+    /// exponent of the visibility term of association (seed 001 eq. 19): a candidate's
+    /// score is `ln p(z | candidate) + w·ln p_vis`, own and prior candidates alike (1: the
+    /// paper's term; 0: by the measurement alone). The hex-cell counts assume a transmitter in
+    /// range is seen from anywhere in the cell; a sensor whose detections depend on its heading
+    /// (MRCLAM's camera) counts every landmark behind it as "not seen" there
+    pub association_visibility_weight: f64,
     /// hexagon circumradius of the visibility grid (m)
     pub hex_size_m: f64,
     /// Beta prior pseudo-counts (ν, ν̄) of seed 001 eq. 12
@@ -173,6 +179,7 @@ impl Default for FilterConfig {
             association_max_spread_m: 3.0,
             prior_min_existence: 0.5,
             prior_shadow_chi2: 0.0,
+            association_visibility_weight: 1.0,
             hex_size_m: 2.0,
             visibility_prior: (1.0, 1.0),
             track_hold_s: 0.0,

@@ -867,7 +867,10 @@ impl Particle {
                 }
                 if let Some(ll) = candidate_log_likelihood(&tx.comps, &self.pose, m, cfg) {
                     let pv = vis.probability(tx.identity as usize, cell);
-                    cands.push((Cand::Old(idx), ll + pv.ln()));
+                    cands.push((
+                        Cand::Old(idx),
+                        ll + cfg.association_visibility_weight * pv.ln(),
+                    ));
                 }
             }
             if let Some(prior) = prior {
@@ -903,7 +906,10 @@ impl Particle {
                     }
                     if let Some(ll) = candidate_log_likelihood(&ptx.comps, &pose, m, cfg) {
                         let pv = prior.visibility(idx, &here);
-                        cands.push((Cand::Prior(idx), ll + pv.ln()));
+                        cands.push((
+                            Cand::Prior(idx),
+                            ll + cfg.association_visibility_weight * pv.ln(),
+                        ));
                     }
                 }
             }

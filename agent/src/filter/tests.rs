@@ -553,6 +553,58 @@ fn a_prior_copy_of_a_transmitter_the_particle_holds_is_no_candidate() {
 }
 
 #[test]
+fn the_visibility_term_of_association_is_weighted() {
+    // The scene above, where the regained track's association competes between the
+    // particle's own transmitter (its hexagons counting the blocked stretch as "not seen")
+    // and the prior's copy. With the term weighted 1 the Beta pseudo-counts of the visibility
+    // prior change which the particles take; weighted 0 the measurement alone decides and
+    // the pseudo-counts change nothing.
+    use super::prior::Prior;
+    let scene = regained_los_scene();
+    let mut differ = 0;
+    for seed in [1u64, 2, 3] {
+        let out = sim(&scene, seed);
+        let second = out.truth.transmitters[1].track;
+        let map = out.truth_map(&nalgebra::Isometry2::identity(), 0.3);
+        let run = |weight: f64, visibility_prior: (f64, f64)| {
+            let c = FilterConfig {
+                association_visibility_weight: weight,
+                visibility_prior,
+                ..cfg(seed, 200)
+            };
+            let mut f = Filter::new(c, true);
+            for s in &out.log.snapshots {
+                if f.prior().is_none() && s.components.iter().any(|m| m.track == second) {
+                    f.set_prior(Some(Prior::new(
+                        &map,
+                        nalgebra::Isometry2::identity(),
+                        None,
+                        0.5,
+                        visibility_prior,
+                    )));
+                }
+                f.step(s);
+            }
+            let track: Vec<(f64, f64)> =
+                f.particles().iter().map(|p| (p.pose.x, p.pose.y)).collect();
+            (f.prior_transmitters_used(), track)
+        };
+        assert_eq!(
+            run(0.0, (1.0, 1.0)),
+            run(0.0, (0.2, 5.0)),
+            "seed {seed}: weighted 0, the visibility counts still mattered"
+        );
+        if run(1.0, (1.0, 1.0)) != run(1.0, (0.2, 5.0)) {
+            differ += 1;
+        }
+    }
+    assert_eq!(
+        differ, 3,
+        "weighted 1, the term changed only {differ} of 3 runs"
+    );
+}
+
+#[test]
 fn a_deferred_association_still_recognizes_a_regained_transmitter() {
     // The scene of `association_recognizes_a_regained_transmitter`, decided over the first
     // 20 detections of the new track, and over 300 — more than the track has, so the
