@@ -273,6 +273,11 @@ pub struct RunArgs {
     /// adopts the first accepted match
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().confirmations, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub prior_confirmations: usize,
+    /// `true`: when a transform that disagrees with the one in use replaces it, the
+    /// transmitters started from prior copies under the old one are released (their position
+    /// covariance widened by how far the new transform moves them); default `false`
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().release_on_change, action = clap::ArgAction::Set)]
+    pub prior_release: bool,
     /// weight of the visibility term when the agent's map is matched against the prior (seed
     /// 001 eq. 18); 0 matches by transmitter positions alone (sensors whose detections depend
     /// on the heading, like MRCLAM's camera)
@@ -677,6 +682,7 @@ pub fn run(cli: Cli) -> Result<()> {
                     transform_draws: (a.transform_draws > 0.0).then_some(a.transform_draws),
                     claim_matched: a.claim_matched,
                     confirmations: a.prior_confirmations,
+                    release_on_change: a.prior_release,
                     anchor_window_s: a.prior_anchor_s,
                     matching: echomap_shared::matching::MatchConfig::default()
                         .with_visibility_weight(a.prior_visibility_weight)
@@ -1142,6 +1148,21 @@ mod tests {
             "--prior-visibility-weight=-2",
         ]);
         assert!(run.unwrap_err().to_string().contains("non-negative"));
+    }
+
+    #[test]
+    fn prior_release_is_off_unless_told() {
+        let parse = |extra: &[&str]| {
+            let mut args = vec!["echomap-agent", "run", "--out", "o"];
+            args.extend_from_slice(extra);
+            Cli::try_parse_from(args).map(|c| match c.command {
+                Command::Run(a) => a.prior_release,
+                _ => unreachable!(),
+            })
+        };
+        assert!(!parse(&[]).unwrap());
+        assert!(parse(&["--prior-release", "true"]).unwrap());
+        assert!(parse(&["--prior-release", "maybe"]).is_err());
     }
 
     #[test]

@@ -9,10 +9,11 @@ use crate::sim::simulate::{SimOptions, simulate};
 use anyhow::Result;
 use indicatif::{ProgressBar, ProgressStyle};
 use plotters::style::RGBColor;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
-/// Error curves of one configuration over several runs.
-#[derive(Debug, Clone, Serialize)]
+/// Error curves of one configuration over several runs (the experiment's `summary.json` holds
+/// a list of them).
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Curves {
     pub label: String,
     pub traveled_m: Vec<f64>,

@@ -407,14 +407,83 @@ pub fn cooperative_mrclam(
         .iter()
         .flat_map(|(_, a, w)| [a.clone(), w.clone()])
         .collect();
-    finish(
-        &all,
-        &format!(
-            "MRCLAM, {} runs: each robot alone and with the others' map",
-            spec.runs
-        ),
-        "robot / prior",
-        &spec.out,
-    )?;
+    let title = format!(
+        "MRCLAM, {} runs: each robot alone and with the others' map",
+        spec.runs
+    );
+    finish(&all, &title, "robot / prior", &spec.out)?;
+    write_robot_panels(&all, &title, &spec.out)?;
     Ok(out)
+}
+
+/// `robots.png/svg` in `dir`: one panel per reference robot (curves labelled `robotN-…`),
+/// its mean MAE alone and with the others' map with their 5th/95th percentiles.
+pub fn write_robot_panels(all: &[Curves], title: &str, dir: &Path) -> Result<()> {
+    use plotters::style::RGBColor;
+    let mut panels: Vec<(String, Vec<crate::plot::Curve>)> = Vec::new();
+    for c in all {
+        let robot = c.label.split('-').next().unwrap_or(&c.label).to_string();
+        let color = if c.label.ends_with("alone") {
+            RGBColor(0, 0, 220)
+        } else {
+            RGBColor(220, 0, 0)
+        };
+        let pts = |v: &[f64]| {
+            c.traveled_m
+                .iter()
+                .copied()
+                .zip(v.iter().copied())
+                .collect()
+        };
+        let curves = vec![
+            (format!("{} mean MAE", c.label), color, pts(&c.mae_mean)),
+            (format!("{} p95", c.label), color, pts(&c.mae_p95)),
+            (format!("{} p5", c.label), color, pts(&c.mae_p5)),
+        ];
+        match panels.iter_mut().find(|p| p.0 == robot) {
+            Some(p) => p.1.extend(curves),
+            None => panels.push((robot, curves)),
+        }
+    }
+    for ext in ["png", "svg"] {
+        crate::plot::draw_panels(
+            &format!("{title}: MAE (mean, 5th/95th percentiles)"),
+            "MAE (m)",
+            &panels,
+            panels.len().min(3),
+            &dir.join(format!("robots.{ext}")),
+        )?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn robot_panels_group_the_curves_by_reference_robot() {
+        let run = |e: f64| vec![vec![(0.0, 0.0, 0.0), (1.0, e, e), (2.0, 2.0 * e, e)]];
+        let all: Vec<Curves> = [("robot1-alone", 0.5), ("robot1-with-others", 0.3)]
+            .into_iter()
+            .chain([("robot4-alone", 0.7), ("robot4-with-others", 0.6)])
+            .map(|(l, e)| Curves::from_runs(l.to_string(), &run(e), Vec::new()))
+            .collect();
+        let dir = std::env::temp_dir().join(format!("echomap-panels-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        write_robot_panels(&all, "test", &dir).unwrap();
+        assert!(std::fs::metadata(dir.join("robots.png")).unwrap().len() > 1000);
+        let svg = std::fs::read_to_string(dir.join("robots.svg")).unwrap();
+        // one panel caption per robot, each panel with both of its robot's curves
+        for label in [
+            "robot1",
+            "robot4",
+            "robot1-with-others mean MAE",
+            "robot4-alone p95",
+        ] {
+            assert!(svg.contains(&format!("\n{label}\n")), "{label} missing");
+        }
+        assert!(write_robot_panels(&[], "test", &dir).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

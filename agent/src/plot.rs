@@ -430,6 +430,34 @@ pub fn draw_error(rows: &[crate::eval::TrackRow], out: &Path) -> Result<()> {
     )
 }
 
+/// Draws `curves` on `chart` with a legend at `pos` (font size `font`): thin lines for labels
+/// naming a percentile, thick ones otherwise.
+macro_rules! labelled_curves {
+    ($chart:expr, $curves:expr, $pos:expr, $font:expr) => {{
+        for (label, color, pts) in $curves {
+            let color = *color;
+            let thin = label.contains("95") || label.contains(" 5th") || label.contains("p5");
+            let style = color.stroke_width(if thin { 1 } else { 2 });
+            $chart
+                .draw_series(LineSeries::new(
+                    pts.iter().copied().filter(|p| p.1.is_finite()),
+                    style,
+                ))
+                .map_err(|e| anyhow!("{e}"))?
+                .label(label.clone())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], style));
+        }
+        $chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", $font))
+            .position($pos)
+            .draw()
+            .map_err(|e| anyhow!("{e}"))?;
+    }};
+}
+
 /// A labelled curve: (label, colour, points).
 pub type Curve = (String, RGBColor, Vec<(f64, f64)>);
 
@@ -462,32 +490,61 @@ pub fn draw_curves(title: &str, y_desc: &str, curves: &[Curve], out: &Path) -> R
                 .y_desc(y_desc)
                 .draw()
                 .map_err(|e| anyhow!("{e}"))?;
-            for (label, color, pts) in curves {
-                let color = *color;
-                let dashed = label.contains("95") || label.contains(" 5th") || label.contains("p5");
-                let style = if dashed {
-                    color.stroke_width(1)
-                } else {
-                    color.stroke_width(2)
-                };
-                chart
-                    .draw_series(LineSeries::new(
-                        pts.iter().copied().filter(|p| p.1.is_finite()),
-                        style,
-                    ))
-                    .map_err(|e| anyhow!("{e}"))?
-                    .label(label.clone())
-                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], style));
-            }
-            chart
-                .configure_series_labels()
-                .background_style(WHITE.mix(0.85))
-                .border_style(BLACK)
-                .position(SeriesLabelPosition::UpperLeft)
-                .draw()
-                .map_err(|e| anyhow!("{e}"))?;
+            labelled_curves!(chart, curves, SeriesLabelPosition::UpperLeft, 14);
             Ok(())
         }};
     }
     with_backend(out, (1000, 600), |root| body!(root), |root| body!(root))
+}
+
+/// Several line charts of labelled curves over travelled distance, in a grid of `cols`
+/// columns, one panel per (title, curves), all on the same y range; thin curves for labels
+/// naming a percentile, as in [`draw_curves`].
+pub fn draw_panels(
+    title: &str,
+    y_desc: &str,
+    panels: &[(String, Vec<Curve>)],
+    cols: usize,
+    out: &Path,
+) -> Result<()> {
+    anyhow::ensure!(!panels.is_empty() && cols >= 1, "nothing to draw");
+    let all = || panels.iter().flat_map(|p| p.1.iter());
+    let y_max = all()
+        .flat_map(|c| c.2.iter().map(|p| p.1))
+        .filter(|v| v.is_finite())
+        .fold(0.1, f64::max)
+        * 1.05;
+    let rows = panels.len().div_ceil(cols);
+    macro_rules! body {
+        ($root:expr) => {{
+            let root = $root;
+            root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
+            let root = root
+                .titled(title, ("sans-serif", 22))
+                .map_err(|e| anyhow!("{e}"))?;
+            for (area, (name, curves)) in root.split_evenly((rows, cols)).iter().zip(panels) {
+                let x_max = curves
+                    .iter()
+                    .flat_map(|c| c.2.iter().map(|p| p.0))
+                    .fold(1.0, f64::max);
+                let mut chart = ChartBuilder::on(area)
+                    .caption(name, ("sans-serif", 16))
+                    .margin(8)
+                    .x_label_area_size(30)
+                    .y_label_area_size(40)
+                    .build_cartesian_2d(0.0..x_max, 0.0..y_max)
+                    .map_err(|e| anyhow!("{e}"))?;
+                chart
+                    .configure_mesh()
+                    .x_desc("travelled distance (m)")
+                    .y_desc(y_desc)
+                    .draw()
+                    .map_err(|e| anyhow!("{e}"))?;
+                labelled_curves!(chart, curves, SeriesLabelPosition::UpperRight, 12);
+            }
+            Ok(())
+        }};
+    }
+    let size = (500 * cols as u32, 40 + 320 * rows as u32);
+    with_backend(out, size, |root| body!(root), |root| body!(root))
 }

@@ -101,6 +101,8 @@ pub fn export_map(filter: &Filter) -> Result<TransmitterMap, MapError> {
             continue;
         }
         let reliability: f64 = states.iter().map(|(wi, tx)| wi * tx.reliability_m).sum();
+        // particles whose weight underflowed to 0 contribute nothing (a zero-weight component
+        // is not a valid map component)
         let pool: Vec<Component> = states
             .iter()
             .flat_map(|(wi, tx)| {
@@ -108,6 +110,7 @@ pub fn export_map(filter: &Filter) -> Result<TransmitterMap, MapError> {
                     .iter()
                     .map(move |c| Component::new(wi * c.weight / existence, c.g.mean, c.g.cov()))
             })
+            .filter(|c| c.weight > 0.0)
             .collect();
         let mut comps = mixture::reduce(&collapse(pool), cfg.export_max_components.max(1));
         mixture::normalize(&mut comps).map_err(|_| MapError {

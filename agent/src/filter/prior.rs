@@ -240,6 +240,11 @@ pub struct PriorSettings {
     /// the inliers' centroid within `agree_m` of each other; defaults 0.1 rad, 0.5 m
     pub agree_rad: f64,
     pub agree_m: f64,
+    /// when a transform that disagrees with the one in use replaces it, the transmitters the
+    /// particles started from prior copies under the old one are released (their position
+    /// covariance widened by how far the new transform moves them, see
+    /// `Filter::release_prior_copies`). Default false (measured on MRCLAM in session 20; README)
+    pub release_on_change: bool,
     pub matching: MatchConfig,
 }
 
@@ -256,6 +261,7 @@ impl Default for PriorSettings {
             confirmations: 1,
             agree_rad: 0.1,
             agree_m: 0.5,
+            release_on_change: false,
             matching: MatchConfig::default(),
         }
     }
@@ -476,6 +482,14 @@ impl PriorTracker {
             } else {
                 "adopted"
             };
+            if let Some(cur) = self.current.filter(|cur| !same(cur, &fit))
+                && self.settings.release_on_change
+            {
+                // a prior point the old transform put at p (agent frame) is now at
+                // fit⁻¹(cur(p))
+                let back = fit.inverse() * cur;
+                filter.release_prior_copies(|p| (back * p - p).norm());
+            }
             self.current = Some(fit);
             let unc =
                 TransformUncertainty::from_fit(&points, &residuals, self.settings.residual_floor_m);

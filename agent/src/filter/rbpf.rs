@@ -35,6 +35,9 @@ pub struct TxState {
     pub comps: Vec<Comp>,
     /// distance this particle walked while the transmitter was visible (seed 001 eq. 21)
     pub reliability_m: f64,
+    /// started from a prior-map transmitter under the transform in use (cleared when a
+    /// disagreeing transform releases it, see [`Filter::release_prior_copies`])
+    pub from_prior: bool,
 }
 
 #[derive(Debug, Clone)]
@@ -488,6 +491,41 @@ impl Filter {
         self.prior.as_deref()
     }
 
+    /// Releases every transmitter the particles started from a prior copy under a transform
+    /// that a disagreeing one now replaces: `moved(p)` is how far the new transform puts the
+    /// prior point that the old one put at `p` (agent frame). Each component's x/y covariance
+    /// gets `moved(mean)²` added on its diagonal, so the copy no longer holds the particle to
+    /// where the old transform said, and the particle's own detections place it again. The
+    /// transmitters stay (the particle has measured them) and count as its own from then on.
+    pub fn release_prior_copies(&mut self, moved: impl Fn(&Point2<f64>) -> f64) {
+        for p in &mut self.particles {
+            for tx in p.txs.iter_mut().filter(|t| t.from_prior) {
+                let tx = Arc::make_mut(tx);
+                tx.from_prior = false;
+                for c in &mut tx.comps {
+                    let mean = c.g.mean;
+                    let d = moved(&Point2::new(mean.x, mean.y));
+                    let mut cov = c.g.cov();
+                    cov[(0, 0)] += d * d;
+                    cov[(1, 1)] += d * d;
+                    if let Some(g) = SqrtGaussian::from_cov(mean, &cov) {
+                        c.g = g;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Particle-weighted number of transmitters started from the prior under the transform
+    /// in use (not released).
+    pub fn prior_copies_held(&self) -> f64 {
+        self.particles
+            .iter()
+            .zip(self.weights())
+            .map(|(p, w)| w * p.txs.iter().filter(|t| t.from_prior).count() as f64)
+            .sum()
+    }
+
     /// Particle-weighted mean number of prior-map transmitters taken over.
     pub fn prior_transmitters_used(&self) -> f64 {
         self.particles
@@ -508,6 +546,11 @@ impl Filter {
 
     pub fn particles(&self) -> &[Particle] {
         &self.particles
+    }
+
+    #[cfg(test)]
+    pub(crate) fn particles_mut(&mut self) -> &mut [Particle] {
+        &mut self.particles
     }
 
     pub fn identities(&self) -> &[Identity] {
@@ -962,7 +1005,7 @@ impl Particle {
                 let (sd, sa) = m.sigmas();
                 let comps = initialize(cfg, &self.pose, m.d(), m.aoa(), sd, sa);
                 self.log_w += ln_p0;
-                self.start_transmitter(identity, comps, track, updated);
+                self.start_transmitter(identity, comps, track, updated, false);
                 self.pending.push(Pending {
                     track,
                     slot: (self.txs.len() - 1) as u32,
@@ -1019,7 +1062,7 @@ impl Particle {
             Some(Cand::Prior(pidx)) => {
                 let comps = self.prior_copy(prior, pidx, m, cfg, merge_now);
                 self.prior_used.push(pidx as u32);
-                self.start_transmitter(identity, comps, track, updated);
+                self.start_transmitter(identity, comps, track, updated, true);
             }
             None => {
                 let (sd, sa) = m.sigmas();
@@ -1027,7 +1070,7 @@ impl Particle {
                 if cfg.association == Association::Off {
                     self.log_w += ln_p0;
                 }
-                self.start_transmitter(identity, comps, track, updated);
+                self.start_transmitter(identity, comps, track, updated, false);
             }
         }
     }
@@ -1105,6 +1148,7 @@ impl Particle {
                         identity: prev.identity,
                         comps: c.comps.clone(),
                         reliability_m: prev.reliability_m,
+                        from_prior: true,
                     });
                     self.prior_used.push(idx);
                     continue;
@@ -1116,6 +1160,7 @@ impl Particle {
                 identity: prev.identity,
                 comps: c.comps.clone(),
                 reliability_m: prev.reliability_m + tentative,
+                from_prior: prev.from_prior,
             });
             for (t, b) in &mut self.bound {
                 if *t == pd.track {
@@ -1182,11 +1227,13 @@ impl Particle {
         comps: Vec<Comp>,
         track: u64,
         updated: &mut Vec<bool>,
+        from_prior: bool,
     ) {
         self.txs.push(Arc::new(TxState {
             identity,
             comps,
             reliability_m: 0.0,
+            from_prior,
         }));
         self.bound.push((track, (self.txs.len() - 1) as u32));
         updated.push(true);

@@ -499,18 +499,131 @@ fn claimed_prior_transmitters_are_no_candidates() {
     assert_eq!(used(true), 0.0);
 }
 
+/// Runs the filter over `out`'s log, setting `map` (agent frame, floor 0.5 m, the config's
+/// visibility prior) as the prior just before the first detection of the second true track.
+fn run_with_prior_from_the_second_track(
+    out: &SimOutput,
+    map: &echomap_shared::map::TransmitterMap,
+    c: FilterConfig,
+) -> Filter {
+    use super::prior::Prior;
+    let second = out.truth.transmitters[1].track;
+    let visibility_prior = c.visibility_prior;
+    let mut f = Filter::new(c, true);
+    for s in &out.log.snapshots {
+        if f.prior().is_none() && s.components.iter().any(|m| m.track == second) {
+            f.set_prior(Some(Prior::new(
+                map,
+                nalgebra::Isometry2::identity(),
+                None,
+                0.5,
+                visibility_prior,
+            )));
+        }
+        f.step(s);
+    }
+    f
+}
+
+#[test]
+fn released_prior_copies_widen_by_the_displacement_and_become_own() {
+    // The true map in the agent frame as the prior: new tracks take its transmitters over.
+    // Releasing them (as a disagreeing transform does) widens each copy's x/y variance by the
+    // displacement², leaves the particle's own transmitters as they were, and releases each
+    // copy once.
+    use super::prior::Prior;
+    let out = indoor_sim("user02", 4);
+    let map = out.truth_map(&nalgebra::Isometry2::identity(), 0.3);
+    let mut f = Filter::new(cfg(4, 100), true);
+    // the prior comes a third into the track: the transmitters of the first third are the
+    // particles' own
+    let third = out.log.snapshots.len() / 3;
+    for (k, s) in out.log.snapshots.iter().enumerate() {
+        if k == third {
+            f.set_prior(Some(Prior::new(
+                &map,
+                nalgebra::Isometry2::identity(),
+                None,
+                0.5,
+                (1.0, 1.0),
+            )));
+        }
+        f.step(s);
+    }
+    let held = f.prior_copies_held();
+    assert!(held >= 5.0, "copies taken: {held}");
+    // per transmitter of particle 0: started from a copy, and each component's x, y, b variance
+    type Variances = Vec<(bool, Vec<(f64, f64, f64)>)>;
+    let covs = |f: &Filter| -> Variances {
+        f.particles()[0]
+            .txs
+            .iter()
+            .map(|t| {
+                let c = t
+                    .comps
+                    .iter()
+                    .map(|c| {
+                        let p = c.g.cov();
+                        (p[(0, 0)], p[(1, 1)], p[(2, 2)])
+                    })
+                    .collect();
+                (t.from_prior, c)
+            })
+            .collect()
+    };
+    let before = covs(&f);
+    assert!(before.iter().any(|t| t.0) && before.iter().any(|t| !t.0));
+    f.release_prior_copies(|_| 2.0);
+    assert_eq!(f.prior_copies_held(), 0.0);
+    let after = covs(&f);
+    for ((copy, b), (still, a)) in before.iter().zip(&after) {
+        assert!(!still, "released transmitters count as the particle's own");
+        for (b, a) in b.iter().zip(a) {
+            let grown = if *copy { 4.0 } else { 0.0 };
+            assert!(
+                (a.0 - b.0 - grown).abs() < 1e-6 * (1.0 + b.0),
+                "x: {b:?} -> {a:?}"
+            );
+            assert!(
+                (a.1 - b.1 - grown).abs() < 1e-6 * (1.0 + b.1),
+                "y: {b:?} -> {a:?}"
+            );
+            assert!((a.2 - b.2).abs() < 1e-6 * (1.0 + b.2), "b: {b:?} -> {a:?}");
+        }
+    }
+    // once released, a second release changes nothing
+    f.release_prior_copies(|_| 2.0);
+    assert_eq!(covs(&f), after);
+}
+
+#[test]
+fn a_particle_whose_weight_underflowed_adds_no_zero_weight_component_to_the_map() {
+    // Two particles, the second with a weight that underflows to exactly 0: the exported map
+    // is valid (every component weight > 0) and holds only the first particle's mixtures.
+    let out = indoor_sim("user02", 2);
+    let mut f = Filter::new(cfg(2, 2), true);
+    for s in out.log.snapshots.iter().take(300) {
+        f.step(s);
+    }
+    f.particles_mut()[1].log_w = f.particles()[0].log_w - 1e6;
+    assert_eq!(f.weights()[1], 0.0);
+    let map = super::export::export_map(&f).expect("a valid map");
+    assert!(!map.is_empty());
+    for t in map.transmitters() {
+        assert!(t.components.iter().all(|c| c.weight > 0.0), "{}", t.id);
+    }
+}
+
 #[test]
 fn a_prior_copy_of_a_transmitter_the_particle_holds_is_no_candidate() {
     // The line of sight is lost and regained under a new track; the prior map, set just
     // before the regained track's first detection, holds that same transmitter. The
     // particles hold it too (tighter than the prior's copy): with the shadow gate no particle
     // takes the copy, and the new track closes the loop on the particle's own transmitter.
-    use super::prior::Prior;
     let scene = regained_los_scene();
     let mut plain_sum = 0.0;
     for seed in [1u64, 2, 3] {
         let out = sim(&scene, seed);
-        let second = out.truth.transmitters[1].track;
         let map = out.truth_map(&nalgebra::Isometry2::identity(), 0.3);
         assert_eq!(map.len(), 1, "one transmitter, seen on two tracks");
         let run = |shadow: f64| {
@@ -518,19 +631,7 @@ fn a_prior_copy_of_a_transmitter_the_particle_holds_is_no_candidate() {
                 prior_shadow_chi2: shadow,
                 ..cfg(seed, 200)
             };
-            let mut f = Filter::new(c, true);
-            for s in &out.log.snapshots {
-                if f.prior().is_none() && s.components.iter().any(|m| m.track == second) {
-                    f.set_prior(Some(Prior::new(
-                        &map,
-                        nalgebra::Isometry2::identity(),
-                        None,
-                        0.5,
-                        (1.0, 1.0),
-                    )));
-                }
-                f.step(s);
-            }
+            let f = run_with_prior_from_the_second_track(&out, &map, c);
             assert!(
                 f.prior().is_some(),
                 "seed {seed}: the second track never came"
@@ -559,12 +660,10 @@ fn the_visibility_term_of_association_is_weighted() {
     // and the prior's copy. With the term weighted 1 the Beta pseudo-counts of the visibility
     // prior change which the particles take; weighted 0 the measurement alone decides and
     // the pseudo-counts change nothing.
-    use super::prior::Prior;
     let scene = regained_los_scene();
     let mut differ = 0;
     for seed in [1u64, 2, 3] {
         let out = sim(&scene, seed);
-        let second = out.truth.transmitters[1].track;
         let map = out.truth_map(&nalgebra::Isometry2::identity(), 0.3);
         let run = |weight: f64, visibility_prior: (f64, f64)| {
             let c = FilterConfig {
@@ -572,19 +671,7 @@ fn the_visibility_term_of_association_is_weighted() {
                 visibility_prior,
                 ..cfg(seed, 200)
             };
-            let mut f = Filter::new(c, true);
-            for s in &out.log.snapshots {
-                if f.prior().is_none() && s.components.iter().any(|m| m.track == second) {
-                    f.set_prior(Some(Prior::new(
-                        &map,
-                        nalgebra::Isometry2::identity(),
-                        None,
-                        0.5,
-                        visibility_prior,
-                    )));
-                }
-                f.step(s);
-            }
+            let f = run_with_prior_from_the_second_track(&out, &map, c);
             let track: Vec<(f64, f64)> =
                 f.particles().iter().map(|p| (p.pose.x, p.pose.y)).collect();
             (f.prior_transmitters_used(), track)
