@@ -48,11 +48,13 @@ fn collapse(mut pool: Vec<Component>) -> Vec<Component> {
     groups
 }
 
-/// Makes a covariance safely positive definite for the map contract.
+/// Makes a covariance safely positive definite for the map contract. A covariance that no
+/// jitter up to 10⁶ mends (non-finite entries) is returned as it is, for the map's validation
+/// to refuse with its path, instead of looping.
 fn spd(cov: &Matrix3<f64>) -> Matrix3<f64> {
     let mut c = symmetrize(cov);
     let mut jitter = 1e-9;
-    while c.cholesky().is_none() {
+    while c.cholesky().is_none() && jitter <= 1e6 {
         c += Matrix3::identity() * jitter;
         jitter *= 10.0;
     }
@@ -132,4 +134,19 @@ pub fn export_map(filter: &Filter) -> Result<TransmitterMap, MapError> {
         });
     }
     TransmitterMap::new(cfg.hex_size_m, transmitters)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spd_mends_an_indefinite_covariance_and_gives_up_on_nan() {
+        let indefinite = Matrix3::new(1.0, 2.0, 0.0, 2.0, 1.0, 0.0, 0.0, 0.0, 1.0);
+        assert!(indefinite.cholesky().is_none());
+        assert!(spd(&indefinite).cholesky().is_some());
+        // a NaN covariance ends (and the map's validation refuses it) instead of looping
+        let nan = Matrix3::identity() * f64::NAN;
+        assert!(spd(&nan).iter().any(|v| v.is_nan()));
+    }
 }
