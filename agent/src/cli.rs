@@ -278,6 +278,10 @@ pub struct RunArgs {
     /// covariance widened by how far the new transform moves them); default `false`
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().release_on_change, action = clap::ArgAction::Set)]
     pub prior_release: bool,
+    /// prior transmitters with a reliability distance below this (m: how far the contributors
+    /// walked while they saw it) are matched against but not offered to new tracks
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().min_reliability_m, value_parser = non_negative)]
+    pub prior_min_reliability: f64,
     /// weight of the visibility term when the agent's map is matched against the prior (seed
     /// 001 eq. 18); 0 matches by transmitter positions alone (sensors whose detections depend
     /// on the heading, like MRCLAM's camera)
@@ -683,6 +687,7 @@ pub fn run(cli: Cli) -> Result<()> {
                     claim_matched: a.claim_matched,
                     confirmations: a.prior_confirmations,
                     release_on_change: a.prior_release,
+                    min_reliability_m: a.prior_min_reliability,
                     anchor_window_s: a.prior_anchor_s,
                     matching: echomap_shared::matching::MatchConfig::default()
                         .with_visibility_weight(a.prior_visibility_weight)
@@ -1163,6 +1168,21 @@ mod tests {
         assert!(!parse(&[]).unwrap());
         assert!(parse(&["--prior-release", "true"]).unwrap());
         assert!(parse(&["--prior-release", "maybe"]).is_err());
+    }
+
+    #[test]
+    fn prior_reliability_floor_is_off_unless_told_and_not_negative() {
+        let parse = |extra: &[&str]| {
+            let mut args = vec!["echomap-agent", "run", "--out", "o"];
+            args.extend_from_slice(extra);
+            Cli::try_parse_from(args).map(|c| match c.command {
+                Command::Run(a) => a.prior_min_reliability,
+                _ => unreachable!(),
+            })
+        };
+        assert_eq!(parse(&[]).unwrap(), 0.0);
+        assert_eq!(parse(&["--prior-min-reliability", "2.5"]).unwrap(), 2.5);
+        assert!(parse(&["--prior-min-reliability", "-1"]).is_err());
     }
 
     #[test]

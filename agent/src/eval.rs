@@ -110,6 +110,54 @@ pub fn percentile(values: &[f64], q: f64) -> f64 {
     v[lo] + (v[hi] - v[lo]) * (pos - lo as f64)
 }
 
+/// Exact two-sided p-value of the Wilcoxon signed-rank test that paired differences `d` are
+/// symmetric about 0: zeros (and non-finite values) are dropped, tied |d| get their mid-rank,
+/// and the null distribution of the positive rank sum is counted over all 2ⁿ sign patterns
+/// (in doubled ranks, so mid-ranks stay integers). None without a non-zero difference.
+pub fn signed_rank_p(d: &[f64]) -> Option<f64> {
+    let mut a: Vec<f64> = d
+        .iter()
+        .copied()
+        .filter(|x| x.is_finite() && *x != 0.0)
+        .collect();
+    if a.is_empty() {
+        return None;
+    }
+    a.sort_by(|x, y| x.abs().total_cmp(&y.abs()));
+    // doubled mid-ranks: a run of ties at 1-based positions i..=j gets i + j
+    let mut ranks = vec![0usize; a.len()];
+    let mut i = 0;
+    while i < a.len() {
+        let mut j = i;
+        while j + 1 < a.len() && a[j + 1].abs() == a[i].abs() {
+            j += 1;
+        }
+        ranks[i..=j].fill(i + j + 2);
+        i = j + 1;
+    }
+    let total: usize = ranks.iter().sum();
+    let observed: usize = a
+        .iter()
+        .zip(&ranks)
+        .filter(|(x, _)| **x > 0.0)
+        .map(|(_, r)| r)
+        .sum();
+    // ways[s]: sign patterns whose positive doubled-rank sum is s
+    let mut ways = vec![0.0f64; total + 1];
+    ways[0] = 1.0;
+    for &r in &ranks {
+        for s in (r..=total).rev() {
+            ways[s] += ways[s - r];
+        }
+    }
+    let dev = |s: usize| (2 * s).abs_diff(total);
+    let extreme: f64 = (0..=total)
+        .filter(|&s| dev(s) >= dev(observed))
+        .map(|s| ways[s])
+        .sum();
+    Some((extreme / 2f64.powi(a.len() as i32)).min(1.0))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -127,6 +175,27 @@ mod tests {
         let c = vec![Vector3::new(10.0, 0.0, 0.0), Vector3::new(0.0, 0.0, 0.0)];
         assert!(ospa(&a, &c, 5.0, 1.0) < 1e-9);
         assert_eq!(ospa(&[], &[], 5.0, 1.0), 0.0);
+    }
+
+    #[test]
+    fn signed_rank_p_counts_the_sign_patterns_exactly() {
+        // five positive differences: only all-positive and all-negative are as extreme
+        assert!((signed_rank_p(&[0.1, 0.2, 0.3, 0.4, 0.5]).unwrap() - 2.0 / 32.0).abs() < 1e-12);
+        assert!((signed_rank_p(&[-0.1, -0.2, -0.3]).unwrap() - 2.0 / 8.0).abs() < 1e-12);
+        // ranks 1..4, positive sum 1 + 4 = 5 = the mean: every pattern is as extreme
+        assert_eq!(signed_rank_p(&[0.1, -0.2, -0.3, 0.4]).unwrap(), 1.0);
+        // positive sum 4 (ranks 1..4, mean 5): all but the 2 patterns summing to 5 exactly
+        // ({1, 4} and {2, 3}) are at least as far from the mean
+        assert!((signed_rank_p(&[-0.1, -0.2, -0.3, 0.4]).unwrap() - 14.0 / 16.0).abs() < 1e-12);
+        // ties share the mid-rank: |d| = 1, 1, 2 → ranks 1.5, 1.5, 3; positive sum 1.5 of 6
+        // (patterns with sums 0, 1.5, 1.5, 4.5, 4.5, 6 of 8 are as far from 3)
+        assert!((signed_rank_p(&[1.0, -1.0, -2.0]).unwrap() - 6.0 / 8.0).abs() < 1e-12);
+        // zeros are dropped; nothing left is no test
+        assert!((signed_rank_p(&[0.0, 0.1, 0.2]).unwrap() - 0.5).abs() < 1e-12);
+        assert_eq!(signed_rank_p(&[0.0, f64::NAN]), None);
+        // twenty runs all one way: 2 / 2^20
+        let d: Vec<f64> = (1..=20).map(|k| -(k as f64)).collect();
+        assert!((signed_rank_p(&d).unwrap() - 2.0 / 1048576.0).abs() < 1e-15);
     }
 
     #[test]

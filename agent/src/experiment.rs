@@ -7,7 +7,7 @@
 //! build the map in order, and the reference robot runs alone and with their map.
 
 use crate::crowd::{self, CrowdSpec, Source, User, UserResult};
-use crate::eval::percentile;
+use crate::eval::{percentile, signed_rank_p};
 use crate::evaluate::{Curves, write_curves};
 use crate::local_server::LocalServer;
 use anyhow::{Context, Result};
@@ -412,8 +412,57 @@ pub fn cooperative_mrclam(
         spec.runs
     );
     finish(&all, &title, "robot / prior", &spec.out)?;
+    let paired = paired_table(&all)?;
+    let path = spec.out.join("results.md");
+    let table = std::fs::read_to_string(&path)?;
+    std::fs::write(&path, format!("{table}\n{paired}"))?;
+    println!("\n{paired}");
     write_robot_panels(&all, &title, &spec.out)?;
     Ok(out)
+}
+
+/// Per reference robot, the runs with the others' map against the same runs alone (paired by
+/// run): the median of the differences (with − alone) of the mean and of the final MAE, how
+/// many runs are lower with the map, and the exact two-sided Wilcoxon signed-rank p-value of
+/// the differences. Curves are paired by label (`robotN-alone` with `robotN-with-others`),
+/// runs in the order they were appended; a robot with unequal run counts is an error.
+pub fn paired_table(all: &[Curves]) -> Result<String> {
+    let mut s = String::from(
+        "| robot | runs | mean MAE: median of with − alone (m) | lower with the map | signed-rank p | final MAE: median of with − alone (m) | lower with the map | signed-rank p |\n| --- | --- | --- | --- | --- | --- | --- | --- |\n",
+    );
+    for alone in all.iter().filter(|c| c.label.ends_with("-alone")) {
+        let robot = alone.label.trim_end_matches("-alone");
+        let Some(with) = all
+            .iter()
+            .find(|c| c.label == format!("{robot}-with-others"))
+        else {
+            continue;
+        };
+        anyhow::ensure!(
+            alone.mean_mae.len() == with.mean_mae.len()
+                && alone.final_mae.len() == with.final_mae.len(),
+            "{robot}: {} runs alone, {} with the map",
+            alone.mean_mae.len(),
+            with.mean_mae.len()
+        );
+        let cols = |a: &[f64], w: &[f64]| {
+            let d: Vec<f64> = w.iter().zip(a).map(|(w, a)| w - a).collect();
+            let p = signed_rank_p(&d).map_or("—".to_string(), |p| format!("{p:.3}"));
+            format!(
+                "{:+.3} | {} of {} | {p}",
+                percentile(&d, 0.5),
+                d.iter().filter(|x| **x < 0.0).count(),
+                d.len()
+            )
+        };
+        s.push_str(&format!(
+            "| {robot} | {} | {} | {} |\n",
+            alone.mean_mae.len(),
+            cols(&alone.mean_mae, &with.mean_mae),
+            cols(&alone.final_mae, &with.final_mae)
+        ));
+    }
+    Ok(s)
 }
 
 /// `robots.png/svg` in `dir`: one panel per reference robot (curves labelled `robotN-…`),
@@ -460,6 +509,45 @@ pub fn write_robot_panels(all: &[Curves], title: &str, dir: &Path) -> Result<()>
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_paired_table_pairs_each_robots_runs_alone_and_with_the_map() {
+        // robot 1: three runs, each lower with the map by 0.1, 0.2, 0.3 m (mean MAE of a
+        // run (0, e, 2e) over 0, 1, 2 m is e); robot 4: one run higher with the map
+        let runs = |es: &[f64]| -> Vec<Vec<(f64, f64, f64)>> {
+            es.iter()
+                .map(|&e| vec![(0.0, 0.0, 0.0), (1.0, e, e), (2.0, 2.0 * e, e)])
+                .collect()
+        };
+        let c = |l: &str, es: &[f64]| Curves::from_runs(l.to_string(), &runs(es), Vec::new());
+        let all = vec![
+            c("robot1-alone", &[0.5, 0.6, 0.7]),
+            c("robot1-with-others", &[0.4, 0.4, 0.4]),
+            c("robot4-alone", &[0.3]),
+            c("robot4-with-others", &[0.5]),
+        ];
+        let t = paired_table(&all).unwrap();
+        let rows: Vec<&str> = t.lines().skip(2).collect();
+        assert_eq!(rows.len(), 2, "{t}");
+        let cells =
+            |r: &str| -> Vec<String> { r.split('|').map(|x| x.trim().to_string()).collect() };
+        let r1 = cells(rows[0]);
+        assert_eq!(r1[1], "robot1");
+        assert_eq!(r1[2], "3");
+        let median: f64 = r1[3].parse().unwrap();
+        assert!((median + 0.2).abs() < 1e-3, "{t}");
+        assert_eq!(r1[4], "3 of 3");
+        assert_eq!(r1[5], "0.250");
+        let r4 = cells(rows[1]);
+        assert_eq!((r4[1].as_str(), r4[4].as_str()), ("robot4", "0 of 1"));
+        assert!(r4[3].parse::<f64>().unwrap() > 0.0);
+        // unequal run counts are refused
+        let bad = vec![
+            c("robot1-alone", &[0.5, 0.6]),
+            c("robot1-with-others", &[0.4]),
+        ];
+        assert!(paired_table(&bad).is_err());
+    }
 
     #[test]
     fn robot_panels_group_the_curves_by_reference_robot() {

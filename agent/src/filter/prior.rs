@@ -245,6 +245,10 @@ pub struct PriorSettings {
     /// covariance widened by how far the new transform moves them, see
     /// `Filter::release_prior_copies`). Default false (measured on MRCLAM in session 20; README)
     pub release_on_change: bool,
+    /// prior transmitters whose reliability distance (seed 001 eq. 21/24: the distance the
+    /// contributors walked while they saw it) is below this are matched against but offered
+    /// to no new track (m); default 0 (every prior transmitter is a candidate)
+    pub min_reliability_m: f64,
     pub matching: MatchConfig,
 }
 
@@ -262,6 +266,7 @@ impl Default for PriorSettings {
             agree_rad: 0.1,
             agree_m: 0.5,
             release_on_change: false,
+            min_reliability_m: 0.0,
             matching: MatchConfig::default(),
         }
     }
@@ -500,8 +505,17 @@ impl PriorTracker {
                 .transform_draws
                 .zip(unc)
                 .map(|(k, u)| u.dispersed(k));
+            let candidates = TransmitterMap::new(
+                self.map.hex_size_m(),
+                self.map
+                    .transmitters()
+                    .iter()
+                    .filter(|t| t.reliability_m >= self.settings.min_reliability_m)
+                    .cloned()
+                    .collect(),
+            )?;
             let mut prior = Prior::new(
-                &self.map,
+                &candidates,
                 fit.inverse(),
                 if self.spread.is_some() {
                     None

@@ -251,6 +251,89 @@ fn a_correct_prior_map_is_matched_and_lowers_the_error() {
 }
 
 #[test]
+fn prior_transmitters_below_the_reliability_floor_are_matched_but_not_taken_over() {
+    // The true map as the prior, every other transmitter marked as seen over 0.5 m of walking
+    // (the rest over 50 m). With a 2 m floor the match still uses them all (its inliers exceed
+    // the reliable ones), but the transmitters offered to new tracks, and so every copy the
+    // particles take, are the reliable ones; without the floor unreliable ones are taken too.
+    use super::{PriorSettings, PriorTracker};
+    use crate::run::run_filter_with_prior;
+    let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
+    let out = indoor_sim("user02", 2);
+    let truth = out.truth_map(&map_from_local, 0.3);
+    let txs: Vec<_> = truth
+        .transmitters()
+        .iter()
+        .enumerate()
+        .map(|(k, t)| {
+            let mut t = t.clone();
+            if k % 2 == 1 {
+                t.reliability_m = 0.5;
+            }
+            t
+        })
+        .collect();
+    let prior = echomap_shared::TransmitterMap::new(truth.hex_size_m(), txs).unwrap();
+    let reliable = prior
+        .transmitters()
+        .iter()
+        .filter(|t| t.reliability_m >= 2.0)
+        .count();
+    let taken = |floor: f64| {
+        let settings = PriorSettings {
+            min_reliability_m: floor,
+            ..PriorSettings::default()
+        };
+        let tracker = PriorTracker::new(prior.clone(), settings, 2);
+        let b = run_filter_with_prior(
+            &out.log,
+            Some(&out.truth),
+            cfg(2, 150),
+            false,
+            Some(tracker),
+        )
+        .unwrap();
+        let most = b.matches.iter().map(|m| m.inliers).max().unwrap_or(0);
+        let p = b.filter.prior().expect("the prior is in use at the end");
+        let offered: Vec<f64> = p
+            .txs
+            .iter()
+            .map(|t| {
+                prior
+                    .transmitters()
+                    .iter()
+                    .find(|q| q.id == t.id)
+                    .unwrap()
+                    .reliability_m
+            })
+            .collect();
+        let used: std::collections::BTreeSet<u32> = b
+            .filter
+            .particles()
+            .iter()
+            .flat_map(|q| q.prior_used.iter().copied())
+            .collect();
+        let unreliable_used = used.iter().filter(|&&i| offered[i as usize] < 2.0).count();
+        (most, offered, used.len(), unreliable_used)
+    };
+    let (most, offered, used, unreliable_used) = taken(2.0);
+    assert!(
+        most > reliable,
+        "best match {most} inliers, {reliable} reliable"
+    );
+    assert!(offered.iter().all(|&r| r >= 2.0), "{offered:?}");
+    assert_eq!(offered.len(), reliable);
+    assert!(used >= 3, "copies taken: {used}");
+    assert_eq!(unreliable_used, 0);
+    let (_, offered, _, unreliable_used) = taken(0.0);
+    assert_eq!(offered.len(), prior.len());
+    assert!(
+        unreliable_used > 0,
+        "without the floor unreliable copies are taken"
+    );
+}
+
+#[test]
 fn a_transform_is_adopted_once_the_next_match_confirms_it() {
     // With two confirmations the first accepted match only waits ("pending");
     // the transform is adopted at the attempt that finds it again (within 0.1 rad / 0.5 m).
