@@ -282,6 +282,17 @@ pub struct RunArgs {
     /// walked while they saw it) are matched against but not offered to new tracks
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().min_reliability_m, value_parser = non_negative)]
     pub prior_min_reliability: f64,
+    /// `true`: every accepted match under the transform in use fuses each prior transmitter
+    /// it pairs with one of the agent's own into that one (product of the two mixtures, the
+    /// particle weighted by their agreement; pairs beyond the matcher's χ² gate are not
+    /// fused), once per pair; default `false`
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().fuse_matched, action = clap::ArgAction::Set)]
+    pub prior_fuse_matched: bool,
+    /// `false`: prior transmitters are offered to no new track (the prior is used for
+    /// matching and, with `--prior-fuse-matched true`, fused into the matched own
+    /// transmitters only); default `true`
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().offer_to_new_tracks, action = clap::ArgAction::Set)]
+    pub prior_candidates: bool,
     /// weight of the visibility term when the agent's map is matched against the prior (seed
     /// 001 eq. 18); 0 matches by transmitter positions alone (sensors whose detections depend
     /// on the heading, like MRCLAM's camera)
@@ -688,6 +699,8 @@ pub fn run(cli: Cli) -> Result<()> {
                     confirmations: a.prior_confirmations,
                     release_on_change: a.prior_release,
                     min_reliability_m: a.prior_min_reliability,
+                    fuse_matched: a.prior_fuse_matched,
+                    offer_to_new_tracks: a.prior_candidates,
                     anchor_window_s: a.prior_anchor_s,
                     matching: echomap_shared::matching::MatchConfig::default()
                         .with_visibility_weight(a.prior_visibility_weight)
@@ -696,6 +709,7 @@ pub fn run(cli: Cli) -> Result<()> {
                 };
                 crate::filter::PriorTracker::new(p, settings, a.seed)
             });
+            let tracker = tracker.transpose()?;
             let out =
                 crate::run::run_filter_with_prior(&log, truth.as_ref(), cfg, !a.quiet, tracker)?;
             crate::output::write_run(&out, truth.as_ref(), &log, &a.out)?;
@@ -1183,6 +1197,36 @@ mod tests {
         assert_eq!(parse(&[]).unwrap(), 0.0);
         assert_eq!(parse(&["--prior-min-reliability", "2.5"]).unwrap(), 2.5);
         assert!(parse(&["--prior-min-reliability", "-1"]).is_err());
+    }
+
+    #[test]
+    fn fusing_matched_prior_transmitters_is_off_unless_told() {
+        let parse = |extra: &[&str]| {
+            let mut args = vec!["echomap-agent", "run", "--out", "o"];
+            args.extend_from_slice(extra);
+            Cli::try_parse_from(args).map(|c| match c.command {
+                Command::Run(a) => a.prior_fuse_matched,
+                _ => unreachable!(),
+            })
+        };
+        assert!(!parse(&[]).unwrap());
+        assert!(parse(&["--prior-fuse-matched", "true"]).unwrap());
+        assert!(parse(&["--prior-fuse-matched", "yes please"]).is_err());
+    }
+
+    #[test]
+    fn prior_transmitters_are_candidates_unless_told() {
+        let parse = |extra: &[&str]| {
+            let mut args = vec!["echomap-agent", "run", "--out", "o"];
+            args.extend_from_slice(extra);
+            Cli::try_parse_from(args).map(|c| match c.command {
+                Command::Run(a) => a.prior_candidates,
+                _ => unreachable!(),
+            })
+        };
+        assert!(parse(&[]).unwrap());
+        assert!(!parse(&["--prior-candidates", "false"]).unwrap());
+        assert!(parse(&["--prior-candidates", "none"]).is_err());
     }
 
     #[test]

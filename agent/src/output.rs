@@ -128,10 +128,11 @@ pub fn write_run(
     std::fs::write(dir.join("map.json"), out.map.to_json_pretty())?;
     std::fs::write(dir.join("track.csv"), track_csv(&out.rows))?;
     if out.had_prior {
-        let mut s = String::from("t,accepted,inliers,angle_rad,tx,ty,action,anchors,reason\n");
+        let mut s =
+            String::from("t,accepted,inliers,angle_rad,tx,ty,action,anchors,fused,reason\n");
         for m in &out.matches {
             s.push_str(&format!(
-                "{},{},{},{},{},{},{},{},\"{}\"\n",
+                "{},{},{},{},{},{},{},{},{:.2},\"{}\"\n",
                 m.t,
                 m.accepted,
                 m.inliers,
@@ -140,6 +141,7 @@ pub fn write_run(
                 m.ty,
                 m.action,
                 m.anchors,
+                m.fused,
                 m.reason.replace('"', "'")
             ));
         }

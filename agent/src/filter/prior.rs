@@ -249,6 +249,15 @@ pub struct PriorSettings {
     /// contributors walked while they saw it) is below this are matched against but offered
     /// to no new track (m); default 0 (every prior transmitter is a candidate)
     pub min_reliability_m: f64,
+    /// every accepted match under the transform in use fuses each prior transmitter it pairs
+    /// with one of the agent's own into that one, once per pair (`Filter::fuse_prior`; χ² gate
+    /// of the matcher): the agent's transmitters it already knows gain the crowd's estimate
+    /// instead of only its new tracks. Default false
+    pub fuse_matched: bool,
+    /// prior transmitters are candidates for new tracks (seed 001 eq. 19). False leaves the
+    /// crowd's transmitters to matching and (with `fuse_matched`) fusion only: no track starts
+    /// from a prior copy. Default true
+    pub offer_to_new_tracks: bool,
     pub matching: MatchConfig,
 }
 
@@ -267,6 +276,8 @@ impl Default for PriorSettings {
             agree_m: 0.5,
             release_on_change: false,
             min_reliability_m: 0.0,
+            fuse_matched: false,
+            offer_to_new_tracks: true,
             matching: MatchConfig::default(),
         }
     }
@@ -287,6 +298,9 @@ pub struct MatchEvent {
     pub action: &'static str,
     /// anchor points the accepted transform was refitted to (0: the match's own fit)
     pub anchors: usize,
+    /// particle-weighted number of own transmitters the crowd's estimate was fused into
+    /// (`PriorSettings::fuse_matched`)
+    pub fused: f64,
     pub reason: String,
 }
 
@@ -294,6 +308,9 @@ pub struct MatchEvent {
 #[derive(Debug)]
 pub struct PriorTracker {
     map: TransmitterMap,
+    /// the prior transmitters offered to new tracks: those at or above
+    /// `PriorSettings::min_reliability_m` (all of them by default)
+    candidates: TransmitterMap,
     settings: PriorSettings,
     seed: u64,
     next_t: Option<f64>,
@@ -307,6 +324,8 @@ pub struct PriorTracker {
     /// the latest accepted transform that disagrees with the one in use, and how many
     /// consecutive accepted matches found them (see `PriorSettings::confirmations`)
     pending: Option<(Isometry2<f64>, usize)>,
+    /// tracks whose transmitter had a prior transmitter fused in (`fuse_matched`)
+    fused: std::collections::BTreeSet<u64>,
     pub events: Vec<MatchEvent>,
 }
 
@@ -346,9 +365,18 @@ fn mean_pose(filter: &Filter) -> (f64, f64, f64) {
 }
 
 impl PriorTracker {
-    pub fn new(map: TransmitterMap, settings: PriorSettings, seed: u64) -> Self {
-        PriorTracker {
+    pub fn new(map: TransmitterMap, settings: PriorSettings, seed: u64) -> Result<Self> {
+        let candidates = TransmitterMap::new(
+            map.hex_size_m(),
+            map.transmitters()
+                .iter()
+                .filter(|t| t.reliability_m >= settings.min_reliability_m)
+                .cloned()
+                .collect(),
+        )?;
+        Ok(PriorTracker {
             map,
+            candidates,
             settings,
             seed,
             next_t: None,
@@ -357,8 +385,9 @@ impl PriorTracker {
             t0: None,
             anchors: BTreeMap::new(),
             pending: None,
+            fused: std::collections::BTreeSet::new(),
             events: Vec::new(),
-        }
+        })
     }
 
     /// `map_from_agent` in use, if any.
@@ -505,17 +534,8 @@ impl PriorTracker {
                 .transform_draws
                 .zip(unc)
                 .map(|(k, u)| u.dispersed(k));
-            let candidates = TransmitterMap::new(
-                self.map.hex_size_m(),
-                self.map
-                    .transmitters()
-                    .iter()
-                    .filter(|t| t.reliability_m >= self.settings.min_reliability_m)
-                    .cloned()
-                    .collect(),
-            )?;
             let mut prior = Prior::new(
-                &candidates,
+                &self.candidates,
                 fit.inverse(),
                 if self.spread.is_some() {
                     None
@@ -526,7 +546,10 @@ impl PriorTracker {
                 filter.config().visibility_prior,
             );
             prior.spread = self.spread;
-            if self.settings.claim_matched {
+            if !self.settings.offer_to_new_tracks {
+                let ids: Vec<String> = prior.txs.iter().map(|t| t.id.clone()).collect();
+                prior.claim(ids.iter().map(String::as_str));
+            } else if self.settings.claim_matched {
                 prior.claim(
                     m.correspondences
                         .iter()
@@ -547,6 +570,28 @@ impl PriorTracker {
         } else {
             "none"
         };
+        // pairs of a match under the transform in use: fuse those not fused yet
+        let mut fused = 0.0;
+        if self.settings.fuse_matched
+            && m.accepted
+            && self.current.as_ref().is_some_and(|cur| same(cur, &fit))
+            && let Some(prior) = filter.prior()
+        {
+            let pairs: Vec<(u64, usize)> = m
+                .correspondences
+                .iter()
+                .filter_map(|&(u, j)| {
+                    let track = track_of(&user.transmitters()[u].id)?;
+                    let id = &self.map.transmitters()[j].id;
+                    let idx = prior.txs.iter().position(|t| &t.id == id)?;
+                    (!self.fused.contains(&track)).then_some((track, idx))
+                })
+                .collect();
+            if !pairs.is_empty() {
+                fused = filter.fuse_prior(&pairs, self.settings.matching.inlier_gate_chi2);
+                self.fused.extend(pairs.iter().map(|(t, _)| *t));
+            }
+        }
         let a = fit;
         self.events.push(MatchEvent {
             t,
@@ -557,6 +602,7 @@ impl PriorTracker {
             ty: a.translation.y,
             action,
             anchors,
+            fused,
             reason: m.reason.unwrap_or_default(),
         });
         Ok(())

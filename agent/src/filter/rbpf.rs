@@ -516,6 +516,66 @@ impl Filter {
         }
     }
 
+    /// Fuses prior-map transmitters into the particles' own transmitters a match paired them
+    /// with: `pairs` holds (track that created the own transmitter, index into the prior in
+    /// use). The prior transmitter (agent frame, in the particle's own transform draw) is an
+    /// independent estimate of the same state, so each own mixture becomes the product
+    /// `Σ_ij w_i·w_j·N(m_j; m_i, P_i + P_j)·N(x; m_ij, P_ij)` and the particle weight takes the
+    /// factor `ln Σ_ij w_i·w_j·N(m_j; m_i, P_i + P_j)` — particles whose map agrees with the
+    /// crowd's gain. A pair whose factor is below its value at the squared Mahalanobis
+    /// distance `gate_chi2` (closest component pair) is not fused, and the particle gets that
+    /// floor instead (a wrong pair neither pulls a transmitter nor leaves only the particles
+    /// that happen to fit it). A fused prior transmitter is taken over: it is no candidate
+    /// for the particle's new tracks. Returns the particle-weighted number of fused pairs.
+    pub fn fuse_prior(&mut self, pairs: &[(u64, usize)], gate_chi2: f64) -> f64 {
+        let Some(prior) = self.prior.clone() else {
+            return 0.0;
+        };
+        let ids: Vec<(u32, usize)> = pairs
+            .iter()
+            .filter(|(_, j)| *j < prior.txs.len())
+            .filter_map(|(t, j)| self.track_identity.get(t).map(|&id| (id, *j)))
+            .collect();
+        let cfg = &self.cfg;
+        let fused: Vec<usize> = self
+            .particles
+            .par_iter_mut()
+            .map(|p| {
+                let mut n = 0;
+                for &(id, j) in &ids {
+                    if p.prior_used.contains(&(j as u32)) {
+                        continue;
+                    }
+                    let Some(slot) = p.txs.iter().position(|t| t.identity == id) else {
+                        continue;
+                    };
+                    let theirs = match &p.prior_frame {
+                        Some(d) => d.apply(&prior.txs[j].comps),
+                        None => prior.txs[j].comps.clone(),
+                    };
+                    let Some((comps, ll, floor)) =
+                        product_mixture(&p.txs[slot].comps, &theirs, gate_chi2)
+                    else {
+                        continue;
+                    };
+                    if ll < floor {
+                        p.log_w += floor;
+                        continue;
+                    }
+                    p.log_w += ll;
+                    let tx = Arc::make_mut(&mut p.txs[slot]);
+                    tx.comps = comps;
+                    tidy(&mut tx.comps, cfg, true);
+                    p.prior_used.push(j as u32);
+                    n += 1;
+                }
+                n
+            })
+            .collect();
+        let w = self.weights();
+        fused.iter().zip(&w).map(|(n, w)| *n as f64 * w).sum()
+    }
+
     /// Particle-weighted number of transmitters started from the prior under the transform
     /// in use (not released).
     pub fn prior_copies_held(&self) -> f64 {
@@ -1238,6 +1298,65 @@ impl Particle {
         self.bound.push((track, (self.txs.len() - 1) as u32));
         updated.push(true);
     }
+}
+
+/// The normalised product of two Gaussian mixtures over the same state, its log evidence
+/// `ln Σ_ij w_i·w_j·N(m_j; m_i, P_i + P_j)`, and the floor of that evidence: the largest
+/// `ln w_i·w_j − ½·ln|2π(P_i + P_j)|` less `gate_chi2 / 2`. None when no pair of components
+/// gives a usable product.
+pub(super) fn product_mixture(
+    a: &[Comp],
+    b: &[Comp],
+    gate_chi2: f64,
+) -> Option<(Vec<Comp>, f64, f64)> {
+    let ln_2pi = (2.0 * std::f64::consts::PI).ln();
+    let mut out: Vec<(f64, Vector3<f64>, Matrix3<f64>)> = Vec::new();
+    let mut floor = f64::NEG_INFINITY;
+    for ca in a {
+        let pa = ca.g.cov();
+        for cb in b {
+            let s = pa + cb.g.cov();
+            let Some(ch) = s.cholesky() else {
+                continue;
+            };
+            let d = cb.g.mean - ca.g.mean;
+            let ln_det = 2.0 * ch.l().diagonal().iter().map(|x| x.ln()).sum::<f64>();
+            let ln_norm = ca.weight.ln() + cb.weight.ln() - 0.5 * (3.0 * ln_2pi + ln_det);
+            floor = floor.max(ln_norm - 0.5 * gate_chi2);
+            // K = P_a S⁻¹: mean m_a + K d, covariance P_a − K P_a
+            let k = ch.solve(&pa).transpose();
+            let mean = ca.g.mean + k * d;
+            let cov = pa - k * pa;
+            let cov = (cov + cov.transpose()) * 0.5;
+            out.push((ln_norm - 0.5 * d.dot(&ch.solve(&d)), mean, cov));
+        }
+    }
+    let total = log_sum_exp(out.iter().map(|o| o.0));
+    if !total.is_finite() {
+        return None;
+    }
+    let comps: Vec<Comp> = out
+        .into_iter()
+        .filter_map(|(l, mean, cov)| {
+            SqrtGaussian::from_cov(mean, &cov).map(|g| Comp {
+                weight: (l - total).exp(),
+                g,
+            })
+        })
+        .filter(|c| c.weight > 0.0)
+        .collect();
+    let sum: f64 = comps.iter().map(|c| c.weight).sum();
+    if comps.is_empty() || sum <= 0.0 {
+        return None;
+    }
+    let comps = comps
+        .into_iter()
+        .map(|c| Comp {
+            weight: c.weight / sum,
+            g: c.g,
+        })
+        .collect();
+    Some((comps, total, floor))
 }
 
 /// Association log-likelihood `ln Σ_c w_c N(z; ẑ_c, P_zz,c)` of a candidate mixture, or None

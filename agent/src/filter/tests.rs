@@ -224,7 +224,7 @@ fn a_correct_prior_map_is_matched_and_lowers_the_error() {
         let out = indoor_sim("user02", seed);
         let prior = out.truth_map(&map_from_local, 0.3);
         let a = run_filter(&out.log, Some(&out.truth), cfg(seed, 200), false).unwrap();
-        let tracker = PriorTracker::new(prior, PriorSettings::default(), seed);
+        let tracker = PriorTracker::new(prior, PriorSettings::default(), seed).unwrap();
         let b = run_filter_with_prior(
             &out.log,
             Some(&out.truth),
@@ -284,7 +284,7 @@ fn prior_transmitters_below_the_reliability_floor_are_matched_but_not_taken_over
             min_reliability_m: floor,
             ..PriorSettings::default()
         };
-        let tracker = PriorTracker::new(prior.clone(), settings, 2);
+        let tracker = PriorTracker::new(prior.clone(), settings, 2).unwrap();
         let b = run_filter_with_prior(
             &out.log,
             Some(&out.truth),
@@ -348,7 +348,7 @@ fn a_transform_is_adopted_once_the_next_match_confirms_it() {
             confirmations,
             ..PriorSettings::default()
         };
-        let tracker = PriorTracker::new(prior.clone(), settings, 1);
+        let tracker = PriorTracker::new(prior.clone(), settings, 1).unwrap();
         let b = run_filter_with_prior(
             &out.log,
             Some(&out.truth),
@@ -403,7 +403,7 @@ fn an_unrelated_prior_map_is_never_used() {
         .collect();
     let prior = echomap_shared::TransmitterMap::new(2.0, scrambled).unwrap();
     let a = run_filter(&out.log, Some(&out.truth), cfg(4, 150), false).unwrap();
-    let tracker = PriorTracker::new(prior, PriorSettings::default(), 4);
+    let tracker = PriorTracker::new(prior, PriorSettings::default(), 4).unwrap();
     let b = run_filter_with_prior(
         &out.log,
         Some(&out.truth),
@@ -934,7 +934,7 @@ fn detections_of_the_first_second_anchor_the_matched_transform() {
                 anchor_window_s: window,
                 ..PriorSettings::default()
             };
-            let tracker = PriorTracker::new(prior.clone(), settings, seed);
+            let tracker = PriorTracker::new(prior.clone(), settings, seed).unwrap();
             let run = run_filter_with_prior(&out.log, None, cfg(seed, 200), false, Some(tracker))
                 .unwrap();
             let first = run.matches.iter().find(|m| m.accepted).expect("matched");
@@ -998,4 +998,250 @@ fn a_motion_only_snapshot_is_no_visibility_evidence() {
         (1.0, 1.0),
         "an estimate without the track: not seen"
     );
+}
+
+#[test]
+fn the_product_of_two_gaussians_is_the_information_sum_and_its_evidence_their_overlap() {
+    // N(x; a, A)·N(x; b, B) = N(a; b, A + B)·N(x; m, P) with P = (A⁻¹ + B⁻¹)⁻¹,
+    // m = P(A⁻¹a + B⁻¹b); two components on one side split the product by their overlap.
+    use super::model::Comp;
+    use super::rbpf::product_mixture;
+    use super::srckf::SqrtGaussian;
+    use nalgebra::{Matrix3, Vector3};
+    let comp = |w: f64, m: [f64; 3], var: [f64; 3]| Comp {
+        weight: w,
+        g: SqrtGaussian::from_cov(
+            Vector3::from(m),
+            &Matrix3::from_diagonal(&Vector3::from(var)),
+        )
+        .unwrap(),
+    };
+    let a = [comp(1.0, [0.0, 0.0, 0.0], [1.0, 4.0, 1.0])];
+    let b = [comp(1.0, [1.0, 2.0, 0.5], [1.0, 1.0, 3.0])];
+    let (p, ev, floor) = product_mixture(&a, &b, 9.21).unwrap();
+    assert_eq!(p.len(), 1);
+    let (m, c) = (p[0].g.mean, p[0].g.cov());
+    // per axis: var = ab/(a+b), mean = (b·ma + a·mb)/(a+b)
+    for (k, (va, vb, ma, mb)) in [
+        (1.0, 1.0, 0.0, 1.0),
+        (4.0, 1.0, 0.0, 2.0),
+        (1.0, 3.0, 0.0, 0.5),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        assert!((c[(k, k)] - va * vb / (va + vb)).abs() < 1e-9, "{c}");
+        assert!((m[k] - (vb * ma + va * mb) / (va + vb)).abs() < 1e-9, "{m}");
+    }
+    let s: [f64; 3] = [2.0, 5.0, 4.0];
+    let d = [1.0, 2.0, 0.5];
+    let ln_norm =
+        -0.5 * (3.0 * (2.0 * std::f64::consts::PI).ln() + s.iter().map(|v| v.ln()).sum::<f64>());
+    let d2: f64 = d.iter().zip(&s).map(|(d, s)| d * d / s).sum();
+    assert!((ev - (ln_norm - 0.5 * d2)).abs() < 1e-9, "{ev}");
+    assert!((floor - (ln_norm - 0.5 * 9.21)).abs() < 1e-9, "{floor}");
+    // two equal-weight components, one on b and one 10σ away: the product keeps almost all
+    // of its weight on the one that agrees
+    let a2 = [
+        comp(0.5, [1.0, 2.0, 0.5], [1.0, 1.0, 1.0]),
+        comp(0.5, [11.0, 2.0, 0.5], [1.0, 1.0, 1.0]),
+    ];
+    let (p, _, _) = product_mixture(&a2, &b, 9.21).unwrap();
+    let near: f64 = p
+        .iter()
+        .filter(|c| c.g.mean.x < 6.0)
+        .map(|c| c.weight)
+        .sum();
+    assert!(near > 0.999, "{near}");
+    assert!((p.iter().map(|c| c.weight).sum::<f64>() - 1.0).abs() < 1e-12);
+}
+
+#[test]
+fn a_matched_prior_transmitter_fused_in_tightens_the_own_one_and_a_wrong_pair_is_gated() {
+    // Half the track without a prior; then the true map (0.1 m std, agent frame, the default
+    // floor of 0.5 m) as the prior. A pair of a track with a far-away prior transmitter fails
+    // the gate and changes no transmitter; of the true pairs, those within the gate tighten
+    // the particles' transmitters and bring them closer to the truth (the others drifted with
+    // the track beyond their covariance and are left as they are).
+    use super::model::mixture_moments;
+    use super::prior::Prior;
+    let out = indoor_sim("user02", 4);
+    let map = out.truth_map(&nalgebra::Isometry2::identity(), 0.1);
+    let mut f = Filter::new(cfg(4, 100), true);
+    let half = out.log.snapshots.len() / 2;
+    for s in &out.log.snapshots[..half] {
+        f.step(s);
+    }
+    f.set_prior(Some(Prior::new(
+        &map,
+        nalgebra::Isometry2::identity(),
+        None,
+        0.5,
+        (1.0, 1.0),
+    )));
+    let prior = f.prior().unwrap().clone();
+    // (track, true x/y, prior index, identity) of the true transmitters the filter has met
+    let seen: Vec<(u64, [f64; 2], usize, u32)> = out
+        .truth
+        .transmitters
+        .iter()
+        .filter_map(|t| {
+            let idx = prior
+                .txs
+                .iter()
+                .position(|p| p.id == format!("p{}", t.track))?;
+            let id = f.identities().iter().position(|i| i.track == t.track)?;
+            Some((t.track, [t.state[0], t.state[1]], idx, id as u32))
+        })
+        .collect();
+    assert!(seen.len() >= 3, "{} transmitters met", seen.len());
+    // per met transmitter: particle-weighted distance to the truth and x/y variance
+    let stats = |f: &Filter| -> Vec<(f64, f64)> {
+        let w = f.weights();
+        seen.iter()
+            .map(|(_, truth, _, id)| {
+                let (mut err, mut var, mut wsum) = (0.0, 0.0, 0.0);
+                for (p, w) in f.particles().iter().zip(&w) {
+                    let Some(t) = p.txs.iter().find(|t| t.identity == *id) else {
+                        continue;
+                    };
+                    let (m, c) = mixture_moments(&t.comps).unwrap();
+                    err += w * ((m.x - truth[0]).powi(2) + (m.y - truth[1]).powi(2)).sqrt();
+                    var += w * (c[(0, 0)] + c[(1, 1)]);
+                    wsum += w;
+                }
+                (err / wsum, var / wsum)
+            })
+            .collect()
+    };
+    let comps = |f: &Filter| -> Vec<Vec<(u32, Vec<f64>)>> {
+        f.particles()
+            .iter()
+            .map(|p| {
+                p.txs
+                    .iter()
+                    .map(|t| {
+                        (
+                            t.identity,
+                            t.comps
+                                .iter()
+                                .flat_map(|c| c.g.mean.iter().copied())
+                                .collect(),
+                        )
+                    })
+                    .collect()
+            })
+            .collect()
+    };
+    // the wrong pair: the first met transmitter with the prior transmitter farthest from it
+    let (track, at, _, _) = seen[0];
+    let far = prior
+        .txs
+        .iter()
+        .enumerate()
+        .max_by(|a, b| {
+            let d = |t: &super::prior::PriorTx| {
+                let (m, _) = t.moments.unwrap();
+                (m.x - at[0]).hypot(m.y - at[1])
+            };
+            d(a.1).total_cmp(&d(b.1))
+        })
+        .unwrap()
+        .0;
+    let before = comps(&f);
+    assert_eq!(f.fuse_prior(&[(track, far)], 9.21), 0.0);
+    assert_eq!(comps(&f), before, "a gated pair changes no transmitter");
+    let s0 = stats(&f);
+    let pairs: Vec<(u64, usize)> = seen.iter().map(|s| (s.0, s.2)).collect();
+    let fused = f.fuse_prior(&pairs, 9.21);
+    let s1 = stats(&f);
+    // the transmitters fused in at least one particle (the rest were outside the gate in all)
+    let after = comps(&f);
+    let changed: Vec<usize> = (0..seen.len())
+        .filter(|&k| {
+            let id = seen[k].3;
+            let of = |c: &Vec<Vec<(u32, Vec<f64>)>>| -> Vec<Vec<f64>> {
+                c.iter()
+                    .flat_map(|p| p.iter().filter(|t| t.0 == id).map(|t| t.1.clone()))
+                    .collect()
+            };
+            of(&before) != of(&after)
+        })
+        .collect();
+    assert!(
+        fused >= 3.0 && changed.len() >= 3,
+        "{fused:.2} fused (particle-weighted), {} transmitters changed of {}",
+        changed.len(),
+        seen.len()
+    );
+    for &k in &changed {
+        assert!(
+            s1[k].1 < s0[k].1,
+            "transmitter {k}: variance {} -> {}",
+            s0[k].1,
+            s1[k].1
+        );
+    }
+    let (e0, e1): (f64, f64) = (
+        changed.iter().map(|&k| s0[k].0).sum(),
+        changed.iter().map(|&k| s1[k].0).sum(),
+    );
+    assert!(
+        e1 < 0.8 * e0,
+        "summed error to the truth of the fused ones {e0:.3} -> {e1:.3} m"
+    );
+    // fused prior transmitters are taken over: a second call fuses nothing
+    assert_eq!(f.fuse_prior(&pairs, 9.21), 0.0);
+}
+
+#[test]
+fn without_candidates_the_prior_only_fuses_into_matched_transmitters() {
+    // The true map in a rotated frame as the prior, matched while running. Offered to new
+    // tracks (the default), particles start transmitters from prior copies; not offered and
+    // fused instead, no transmitter starts from a copy, the matched ones are fused in, and
+    // every prior transmitter a particle holds is one it fused.
+    use super::{PriorSettings, PriorTracker};
+    use crate::run::run_filter_with_prior;
+    let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
+    let out = indoor_sim("user02", 2);
+    let prior = out.truth_map(&map_from_local, 0.3);
+    let run = |settings: PriorSettings| {
+        let tracker = PriorTracker::new(prior.clone(), settings, 2).unwrap();
+        run_filter_with_prior(
+            &out.log,
+            Some(&out.truth),
+            cfg(2, 150),
+            false,
+            Some(tracker),
+        )
+        .unwrap()
+    };
+    let copies = |r: &crate::run::RunOutput| -> usize {
+        r.filter
+            .particles()
+            .iter()
+            .map(|p| p.txs.iter().filter(|t| t.from_prior).count())
+            .sum()
+    };
+    let offered = run(PriorSettings::default());
+    assert!(copies(&offered) > 0, "offered: no copy taken");
+    assert!(offered.matches.iter().all(|m| m.fused == 0.0));
+    let fused_only = run(PriorSettings {
+        fuse_matched: true,
+        offer_to_new_tracks: false,
+        ..PriorSettings::default()
+    });
+    assert!(fused_only.matches.iter().any(|m| m.accepted));
+    assert_eq!(copies(&fused_only), 0);
+    let fused: f64 = fused_only.matches.iter().map(|m| m.fused).sum();
+    assert!(fused >= 3.0, "fused {fused}");
+    // the prior transmitters the particles hold came from fusion (no copies were started)
+    let held = fused_only
+        .filter
+        .particles()
+        .iter()
+        .map(|p| p.prior_used.len())
+        .max()
+        .unwrap();
+    assert!(held > 0);
 }
