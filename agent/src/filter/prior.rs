@@ -22,7 +22,7 @@ use nalgebra::{Isometry2, Matrix2, Matrix3, Point2, Vector2, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::ops::AddAssign;
 
 /// One prior-map transmitter, in the agent frame.
@@ -168,7 +168,7 @@ impl Prior {
 
     /// Marks the prior transmitters with these ids (prior map ids) as held by the agent.
     pub fn claim<'a>(&mut self, ids: impl IntoIterator<Item = &'a str>) {
-        let ids: std::collections::BTreeSet<&str> = ids.into_iter().collect();
+        let ids: BTreeSet<&str> = ids.into_iter().collect();
         for t in &mut self.txs {
             if ids.contains(t.id.as_str()) {
                 t.claimed = true;
@@ -325,7 +325,7 @@ pub struct PriorTracker {
     /// consecutive accepted matches found them (see `PriorSettings::confirmations`)
     pending: Option<(Isometry2<f64>, usize)>,
     /// tracks whose transmitter had a prior transmitter fused in (`fuse_matched`)
-    fused: std::collections::BTreeSet<u64>,
+    fused: BTreeSet<u64>,
     pub events: Vec<MatchEvent>,
 }
 
@@ -385,7 +385,7 @@ impl PriorTracker {
             t0: None,
             anchors: BTreeMap::new(),
             pending: None,
-            fused: std::collections::BTreeSet::new(),
+            fused: BTreeSet::new(),
             events: Vec::new(),
         })
     }

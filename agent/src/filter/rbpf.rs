@@ -522,8 +522,8 @@ impl Filter {
     /// independent estimate of the same state, so each own mixture becomes the product
     /// `Σ_ij w_i·w_j·N(m_j; m_i, P_i + P_j)·N(x; m_ij, P_ij)` and the particle weight takes the
     /// factor `ln Σ_ij w_i·w_j·N(m_j; m_i, P_i + P_j)` — particles whose map agrees with the
-    /// crowd's gain. A pair whose factor is below its value at the squared Mahalanobis
-    /// distance `gate_chi2` (closest component pair) is not fused, and the particle gets that
+    /// crowd's gain. A pair whose factor is below the floor of `product_mixture` (the factor
+    /// at the squared Mahalanobis distance `gate_chi2`) is not fused, and the particle gets that
     /// floor instead (a wrong pair neither pulls a transmitter nor leaves only the particles
     /// that happen to fit it). A fused prior transmitter is taken over: it is no candidate
     /// for the particle's new tracks. Returns the particle-weighted number of fused pairs.
