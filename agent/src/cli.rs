@@ -14,7 +14,10 @@ use std::path::{Path, PathBuf};
 #[command(
     name = "echomap-agent",
     version,
-    about = "echomap agent: simulate, run Channel-SLAM, evaluate"
+    about = "echomap agent: simulate, run Channel-SLAM, evaluate",
+    // a flag given twice takes its last value: the experiments put their defaults (e.g.
+    // MRCLAM_RUN_ARGS) before the flags given after `--`, which then override them
+    args_override_self = true
 )]
 pub struct Cli {
     #[command(subcommand)]
@@ -255,6 +258,10 @@ pub struct RunArgs {
     /// std (m) added to every prior transmitter's position covariance
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().position_floor_m)]
     pub prior_floor: f64,
+    /// std (m) added to every prior transmitter's clock offset: the crowd's offsets carry
+    /// each contributor's own range bias (0: taken as they are)
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().offset_floor_m)]
+    pub prior_offset_floor: f64,
     /// how the matched transform's uncertainty enters the filter: K > 0 — every particle
     /// draws its own correction of the transform from the fit's spread, stds × K; 0 — every
     /// prior covariance is inflated by the spread instead
@@ -307,6 +314,50 @@ pub struct RunArgs {
     pub ignore_prior: bool,
     #[command(flatten)]
     pub server: ServerArgs,
+}
+
+impl RunArgs {
+    /// How this run matches and uses a prior map; refuses out-of-range values.
+    pub fn prior_settings(&self) -> Result<crate::filter::PriorSettings> {
+        let a = self;
+        anyhow::ensure!(
+            a.match_every > 0.0 && a.match_every.is_finite(),
+            "--match-every must be a positive number of seconds"
+        );
+        anyhow::ensure!(
+            a.prior_floor >= 0.0 && a.prior_floor.is_finite(),
+            "--prior-floor must be a non-negative number of metres"
+        );
+        anyhow::ensure!(
+            a.transform_draws >= 0.0 && a.transform_draws.is_finite(),
+            "--transform-draws must be a non-negative factor"
+        );
+        anyhow::ensure!(
+            a.prior_offset_floor >= 0.0 && a.prior_offset_floor.is_finite(),
+            "--prior-offset-floor must be a non-negative std (m)"
+        );
+        anyhow::ensure!(
+            a.prior_anchor_s >= 0.0 && a.prior_anchor_s.is_finite(),
+            "--prior-anchor-s must be a non-negative number of seconds"
+        );
+        Ok(crate::filter::PriorSettings {
+            match_every_s: a.match_every,
+            position_floor_m: a.prior_floor,
+            offset_floor_m: a.prior_offset_floor,
+            transform_draws: (a.transform_draws > 0.0).then_some(a.transform_draws),
+            claim_matched: a.claim_matched,
+            confirmations: a.prior_confirmations,
+            release_on_change: a.prior_release,
+            min_reliability_m: a.prior_min_reliability,
+            fuse_matched: a.prior_fuse_matched,
+            offer_to_new_tracks: a.prior_candidates,
+            anchor_window_s: a.prior_anchor_s,
+            matching: echomap_shared::matching::MatchConfig::default()
+                .with_visibility_weight(a.prior_visibility_weight)
+                .with_location_score(a.prior_match_score.location_score()),
+            ..Default::default()
+        })
+    }
 }
 
 /// Talking to a map server (`echomap-server`).
@@ -572,6 +623,15 @@ pub struct CooperativeArgs {
     pub token_file: Option<PathBuf>,
     #[arg(long)]
     pub out: PathBuf,
+    /// one extra word for the reference user's runs only, after those after `--` (which it
+    /// overrides when it repeats one of them); repeat it per word, e.g.
+    /// `--reference-arg=--prior-fuse-matched --reference-arg=true`
+    #[arg(
+        long = "reference-arg",
+        allow_hyphen_values = true,
+        value_name = "WORD"
+    )]
+    pub reference_run_args: Vec<String>,
     /// extra flags for every agent run (crowd and reference), after `--`, e.g.
     /// `-- --association-window 60`
     #[arg(last = true)]
@@ -668,47 +728,16 @@ pub fn run(cli: Cli) -> Result<()> {
                 .map(|p| p.speed_mps)
                 .unwrap_or(0.0);
             let cfg = a.filter.config(a.seed, initial_speed)?;
+            let settings = a.prior_settings()?;
             let remote = crate::remote::Remote::from_args(&a.server)?;
             let prior = match (&remote, &a.prior) {
                 (Some(r), _) => Some(r.fetch_prior(&a.out)?),
                 (None, Some(path)) => Some(read_prior(path)?),
                 (None, None) => None,
             };
-            anyhow::ensure!(
-                a.match_every > 0.0 && a.match_every.is_finite(),
-                "--match-every must be a positive number of seconds"
-            );
-            anyhow::ensure!(
-                a.prior_floor >= 0.0 && a.prior_floor.is_finite(),
-                "--prior-floor must be a non-negative number of metres"
-            );
-            anyhow::ensure!(
-                a.transform_draws >= 0.0 && a.transform_draws.is_finite(),
-                "--transform-draws must be a non-negative factor"
-            );
-            anyhow::ensure!(
-                a.prior_anchor_s >= 0.0 && a.prior_anchor_s.is_finite(),
-                "--prior-anchor-s must be a non-negative number of seconds"
-            );
-            let tracker = prior.filter(|p| !p.is_empty() && !a.ignore_prior).map(|p| {
-                let settings = crate::filter::PriorSettings {
-                    match_every_s: a.match_every,
-                    position_floor_m: a.prior_floor,
-                    transform_draws: (a.transform_draws > 0.0).then_some(a.transform_draws),
-                    claim_matched: a.claim_matched,
-                    confirmations: a.prior_confirmations,
-                    release_on_change: a.prior_release,
-                    min_reliability_m: a.prior_min_reliability,
-                    fuse_matched: a.prior_fuse_matched,
-                    offer_to_new_tracks: a.prior_candidates,
-                    anchor_window_s: a.prior_anchor_s,
-                    matching: echomap_shared::matching::MatchConfig::default()
-                        .with_visibility_weight(a.prior_visibility_weight)
-                        .with_location_score(a.prior_match_score.location_score()),
-                    ..Default::default()
-                };
-                crate::filter::PriorTracker::new(p, settings, a.seed)
-            });
+            let tracker = prior
+                .filter(|p| !p.is_empty() && !a.ignore_prior)
+                .map(|p| crate::filter::PriorTracker::new(p, settings.clone(), a.seed));
             let tracker = tracker.transpose()?;
             let out =
                 crate::run::run_filter_with_prior(&log, truth.as_ref(), cfg, !a.quiet, tracker)?;
@@ -949,6 +978,25 @@ pub const MRCLAM_RUN_ARGS: [&str; 18] = [
     "0",
 ];
 
+/// How the agents of the cooperative MRCLAM experiment use the crowd's map (README,
+/// "Cooperative Channel-SLAM", session 23: over 20 paired runs robots 1, 4 and 5 lower with
+/// the others' map beyond the spread, robot 2 lower by the median, robot 3 not): the crowd
+/// fused into the matched own transmitters and no prior copies for new tracks, its positions
+/// floored at 0.15 m, one transform draw per particle, and the transform anchored to the
+/// first 30 s of detections.
+pub const MRCLAM_PRIOR_ARGS: [&str; 10] = [
+    "--prior-floor",
+    "0.15",
+    "--prior-fuse-matched",
+    "true",
+    "--prior-candidates",
+    "false",
+    "--transform-draws",
+    "1",
+    "--prior-anchor-s",
+    "30",
+];
+
 /// The cooperative experiment's matching visibility weight: as given, else 1 — and 0 on
 /// MRCLAM, whose camera's detections depend on its heading, not only on the place.
 fn match_visibility_weight(a: &CooperativeArgs) -> f64 {
@@ -999,7 +1047,13 @@ fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
         first_seed: a.first_seed,
         parallel: a.parallel.max(1),
         crowd_args: [crowd, weight_arg.to_vec(), a.run_args.clone()].concat(),
-        reference_args: [reference, weight_arg.to_vec(), a.run_args.clone()].concat(),
+        reference_args: [
+            reference,
+            weight_arg.to_vec(),
+            a.run_args.clone(),
+            a.reference_run_args.clone(),
+        ]
+        .concat(),
         out: a.out.clone(),
         progress: true,
         match_visibility_weight: weight,
@@ -1034,7 +1088,11 @@ fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
                 write_sim_output(&crate::sim::SimOutput { log, truth }, &d)?;
                 logs.push((robot, d));
             }
-            let extra: Vec<String> = MRCLAM_RUN_ARGS.iter().map(|s| s.to_string()).collect();
+            let extra: Vec<String> = MRCLAM_RUN_ARGS
+                .iter()
+                .chain(&MRCLAM_PRIOR_ARGS)
+                .map(|s| s.to_string())
+                .collect();
             let mut c = particles(a.particles);
             c.extend(extra.clone());
             let mut r = particles(a.reference_particles);
@@ -1167,6 +1225,72 @@ mod tests {
             "--prior-visibility-weight=-2",
         ]);
         assert!(run.unwrap_err().to_string().contains("non-negative"));
+    }
+
+    #[test]
+    fn a_run_flag_given_after_the_mrclam_defaults_overrides_them() {
+        let heading = |extra: &[&str]| {
+            let mut args = vec!["echomap-agent", "run", "--out", "o"];
+            args.extend_from_slice(&MRCLAM_RUN_ARGS);
+            args.extend_from_slice(extra);
+            match Cli::try_parse_from(args)?.command {
+                Command::Run(r) => {
+                    Ok::<f64, anyhow::Error>(r.filter.config(1, 0.0)?.heading_noise_rad_per_sqrt_s)
+                }
+                _ => panic!("not the run command"),
+            }
+        };
+        let default = heading(&[]).unwrap();
+        assert_eq!(heading(&["--heading-noise", "0.02"]).unwrap(), 0.02);
+        assert_eq!(default.to_string(), MRCLAM_RUN_ARGS[1]);
+        let err = heading(&["--heading-noise", "fast"]).unwrap_err();
+        assert!(err.to_string().contains("--heading-noise"), "{err}");
+    }
+
+    #[test]
+    fn the_mrclam_experiments_agents_fuse_the_anchored_crowd_unless_told_otherwise() {
+        let settings = |extra: &[&str]| {
+            let mut args = vec!["echomap-agent", "run", "--out", "o"];
+            args.extend_from_slice(&MRCLAM_RUN_ARGS);
+            args.extend_from_slice(&MRCLAM_PRIOR_ARGS);
+            args.extend_from_slice(extra);
+            match Cli::try_parse_from(args)?.command {
+                Command::Run(r) => r.prior_settings(),
+                _ => panic!("not the run command"),
+            }
+        };
+        let plain = crate::filter::PriorSettings::default();
+        let s = settings(&[]).unwrap();
+        assert!(s.fuse_matched && !plain.fuse_matched);
+        assert!(!s.offer_to_new_tracks && plain.offer_to_new_tracks);
+        assert_eq!(s.position_floor_m, 0.15);
+        assert_eq!(s.transform_draws, Some(1.0));
+        assert_eq!(s.anchor_window_s, 30.0);
+        let s = settings(&["--prior-anchor-s", "0", "--prior-candidates", "true"]).unwrap();
+        assert_eq!(s.anchor_window_s, 0.0);
+        assert!(s.offer_to_new_tracks);
+        let err = settings(&["--prior-offset-floor=-1"]).unwrap_err();
+        assert!(err.to_string().contains("--prior-offset-floor"), "{err}");
+        // the experiment's --reference-arg words reach the reference's runs only
+        let cli = Cli::try_parse_from([
+            "echomap-agent",
+            "experiment",
+            "cooperative",
+            "--out",
+            "o",
+            "--reference-arg=--prior-fuse-matched",
+            "--reference-arg",
+            "false",
+            "--",
+            "--prior-floor",
+            "0.3",
+        ])
+        .unwrap();
+        let Command::Experiment(ExperimentCommand::Cooperative(a)) = cli.command else {
+            panic!("not the cooperative experiment");
+        };
+        assert_eq!(a.reference_run_args, ["--prior-fuse-matched", "false"]);
+        assert_eq!(a.run_args, ["--prior-floor", "0.3"]);
     }
 
     #[test]

@@ -203,6 +203,12 @@ pub struct PriorSettings {
     /// crowd map is distorted by its contributors' track errors beyond its covariances;
     /// default 0.5
     pub position_floor_m: f64,
+    /// std added in quadrature to the clock offset `b` of every prior transmitter (m): each
+    /// contributor's `b` also absorbs its own receiver's range bias (on MRCLAM each robot's
+    /// camera has its own), so the crowd's offsets are one user's estimates, not the next
+    /// user's; the exported maps carry no floor on `b`. Default 0 (seed 001: offsets are
+    /// properties of the transmitter, shared by every user)
+    pub offset_floor_m: f64,
     /// how the transform's uncertainty enters the filter: `Some(k)` — every particle draws
     /// its own correction of the transform from the fit's spread with every std multiplied
     /// by k (the fit's σ comes from residuals and misses the drift the agent's map shares
@@ -268,6 +274,7 @@ impl Default for PriorSettings {
             first_match_s: 5.0,
             residual_floor_m: 0.3,
             position_floor_m: 0.5,
+            offset_floor_m: 0.0,
             transform_draws: None,
             anchor_window_s: 0.0,
             claim_matched: false,
@@ -371,7 +378,13 @@ impl PriorTracker {
             map.transmitters()
                 .iter()
                 .filter(|t| t.reliability_m >= settings.min_reliability_m)
-                .cloned()
+                .map(|t| {
+                    let mut t = t.clone();
+                    for c in &mut t.components {
+                        c.cov[(2, 2)] += settings.offset_floor_m.powi(2);
+                    }
+                    t
+                })
                 .collect(),
         )?;
         Ok(PriorTracker {

@@ -1245,3 +1245,65 @@ fn without_candidates_the_prior_only_fuses_into_matched_transmitters() {
         .unwrap();
     assert!(held > 0);
 }
+
+#[test]
+fn a_crowd_whose_offsets_carry_another_receivers_bias_fuses_only_with_the_offset_floor() {
+    // The true map in a rotated frame as the prior, every clock offset shifted by 5 m (another
+    // user's range bias, far beyond the offsets' stds). Fused as it is, the offsets fail the χ²
+    // gate; with an offset floor of 10 m the pairs fuse on their positions, and the prior the
+    // filter holds carries the floor on every offset's variance.
+    use super::{PriorSettings, PriorTracker};
+    use crate::run::run_filter_with_prior;
+    let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
+    let out = indoor_sim("user02", 2);
+    let truth = out.truth_map(&map_from_local, 0.1);
+    let biased: Vec<_> = truth
+        .transmitters()
+        .iter()
+        .map(|t| {
+            let mut t = t.clone();
+            t.components[0].mean.z += 5.0;
+            t
+        })
+        .collect();
+    let prior = echomap_shared::TransmitterMap::new(truth.hex_size_m(), biased).unwrap();
+    let run = |floor: f64| {
+        let settings = PriorSettings {
+            fuse_matched: true,
+            offer_to_new_tracks: false,
+            offset_floor_m: floor,
+            ..PriorSettings::default()
+        };
+        let tracker = PriorTracker::new(prior.clone(), settings, 2).unwrap();
+        run_filter_with_prior(
+            &out.log,
+            Some(&out.truth),
+            cfg(2, 150),
+            false,
+            Some(tracker),
+        )
+        .unwrap()
+    };
+    let fused = |r: &crate::run::RunOutput| r.matches.iter().map(|m| m.fused).sum::<f64>();
+    let as_is = run(0.0);
+    let floored = run(10.0);
+    assert!(as_is.matches.iter().any(|m| m.accepted));
+    assert!(floored.matches.iter().any(|m| m.accepted));
+    assert!(
+        fused(&floored) >= 3.0 && fused(&floored) > 2.0 * fused(&as_is),
+        "fused with the floor {} and without {}",
+        fused(&floored),
+        fused(&as_is)
+    );
+    let held = floored.filter.prior().expect("a prior in use");
+    for t in &held.txs {
+        for c in &t.comps {
+            assert!(
+                c.g.cov()[(2, 2)] >= 100.0,
+                "{}: {}",
+                t.id,
+                c.g.cov()[(2, 2)]
+            );
+        }
+    }
+}
