@@ -256,20 +256,20 @@ pub struct RunArgs {
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().match_every_s)]
     pub match_every: f64,
     /// std (m) added to every prior transmitter's position covariance
-    #[arg(long, default_value_t = crate::filter::PriorSettings::default().position_floor_m)]
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().position_floor_m, value_parser = non_negative)]
     pub prior_floor: f64,
     /// std (m) added to every prior transmitter's clock offset: the crowd's offsets carry
     /// each contributor's own range bias (0: taken as they are)
-    #[arg(long, default_value_t = crate::filter::PriorSettings::default().offset_floor_m)]
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().offset_floor_m, value_parser = non_negative)]
     pub prior_offset_floor: f64,
     /// how the matched transform's uncertainty enters the filter: K > 0 — every particle
     /// draws its own correction of the transform from the fit's spread, stds × K; 0 — every
     /// prior covariance is inflated by the spread instead
-    #[arg(long, default_value_t = crate::filter::PriorSettings::default().transform_draws.unwrap_or(0.0))]
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().transform_draws.unwrap_or(0.0), value_parser = non_negative)]
     pub transform_draws: f64,
     /// seconds at the start of the log whose detections anchor the matched transform (the
     /// pose is still known in the local frame then; 0: the match's own fit is used)
-    #[arg(long, default_value_t = crate::filter::PriorSettings::default().anchor_window_s)]
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().anchor_window_s, value_parser = non_negative)]
     pub prior_anchor_s: f64,
     /// `true`: prior transmitters that the match pairs with one of the agent's own are no
     /// candidates for new tracks (default `false`: every prior transmitter stays one)
@@ -317,28 +317,13 @@ pub struct RunArgs {
 }
 
 impl RunArgs {
-    /// How this run matches and uses a prior map; refuses out-of-range values.
+    /// How this run matches and uses a prior map; refuses a non-positive `--match-every` (the
+    /// other flags' ranges are checked when they are parsed).
     pub fn prior_settings(&self) -> Result<crate::filter::PriorSettings> {
         let a = self;
         anyhow::ensure!(
             a.match_every > 0.0 && a.match_every.is_finite(),
             "--match-every must be a positive number of seconds"
-        );
-        anyhow::ensure!(
-            a.prior_floor >= 0.0 && a.prior_floor.is_finite(),
-            "--prior-floor must be a non-negative number of metres"
-        );
-        anyhow::ensure!(
-            a.transform_draws >= 0.0 && a.transform_draws.is_finite(),
-            "--transform-draws must be a non-negative factor"
-        );
-        anyhow::ensure!(
-            a.prior_offset_floor >= 0.0 && a.prior_offset_floor.is_finite(),
-            "--prior-offset-floor must be a non-negative std (m)"
-        );
-        anyhow::ensure!(
-            a.prior_anchor_s >= 0.0 && a.prior_anchor_s.is_finite(),
-            "--prior-anchor-s must be a non-negative number of seconds"
         );
         Ok(crate::filter::PriorSettings {
             match_every_s: a.match_every,
@@ -737,7 +722,7 @@ pub fn run(cli: Cli) -> Result<()> {
             };
             let tracker = prior
                 .filter(|p| !p.is_empty() && !a.ignore_prior)
-                .map(|p| crate::filter::PriorTracker::new(p, settings.clone(), a.seed));
+                .map(|p| crate::filter::PriorTracker::new(p, settings, a.seed));
             let tracker = tracker.transpose()?;
             let out =
                 crate::run::run_filter_with_prior(&log, truth.as_ref(), cfg, !a.quiet, tracker)?;

@@ -37,6 +37,26 @@ fn indoor_sim(track: &str, seed: u64) -> SimOutput {
     .unwrap()
 }
 
+/// Runs `out`'s log (`particles` particles, filter seed `seed`) matching against `prior` with
+/// `settings`.
+fn run_with_prior(
+    out: &SimOutput,
+    prior: &echomap_shared::TransmitterMap,
+    settings: super::PriorSettings,
+    seed: u64,
+    particles: usize,
+) -> crate::run::RunOutput {
+    let tracker = super::PriorTracker::new(prior.clone(), settings, seed).unwrap();
+    crate::run::run_filter_with_prior(
+        &out.log,
+        Some(&out.truth),
+        cfg(seed, particles),
+        false,
+        Some(tracker),
+    )
+    .unwrap()
+}
+
 fn sim(s: &Scenario, seed: u64) -> SimOutput {
     simulate(
         s,
@@ -216,23 +236,14 @@ fn a_correct_prior_map_is_matched_and_lowers_the_error() {
     // the agent must find the transform while running, take the prior's transmitters over
     // for new tracks (seed 001 eq. 19), and end with a lower mean MAE than alone, on
     // average over three seeds (tolerance: at least 20 % lower).
-    use super::{PriorSettings, PriorTracker};
-    use crate::run::run_filter_with_prior;
+    use super::PriorSettings;
     let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
     let (mut alone, mut with) = (0.0, 0.0);
     for seed in [1u64, 2, 3] {
         let out = indoor_sim("user02", seed);
         let prior = out.truth_map(&map_from_local, 0.3);
         let a = run_filter(&out.log, Some(&out.truth), cfg(seed, 200), false).unwrap();
-        let tracker = PriorTracker::new(prior, PriorSettings::default(), seed).unwrap();
-        let b = run_filter_with_prior(
-            &out.log,
-            Some(&out.truth),
-            cfg(seed, 200),
-            false,
-            Some(tracker),
-        )
-        .unwrap();
+        let b = run_with_prior(&out, &prior, PriorSettings::default(), seed, 200);
         let first = b.matches.iter().find(|m| m.accepted).expect("matched");
         assert!(
             (first.angle_rad - 0.7).abs() < 0.05
@@ -256,8 +267,7 @@ fn prior_transmitters_below_the_reliability_floor_are_matched_but_not_taken_over
     // (the rest over 50 m). With a 2 m floor the match still uses them all (its inliers exceed
     // the reliable ones), but the transmitters offered to new tracks, and so every copy the
     // particles take, are the reliable ones; without the floor unreliable ones are taken too.
-    use super::{PriorSettings, PriorTracker};
-    use crate::run::run_filter_with_prior;
+    use super::PriorSettings;
     let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
     let out = indoor_sim("user02", 2);
     let truth = out.truth_map(&map_from_local, 0.3);
@@ -284,15 +294,7 @@ fn prior_transmitters_below_the_reliability_floor_are_matched_but_not_taken_over
             min_reliability_m: floor,
             ..PriorSettings::default()
         };
-        let tracker = PriorTracker::new(prior.clone(), settings, 2).unwrap();
-        let b = run_filter_with_prior(
-            &out.log,
-            Some(&out.truth),
-            cfg(2, 150),
-            false,
-            Some(tracker),
-        )
-        .unwrap();
+        let b = run_with_prior(&out, &prior, settings, 2, 150);
         let most = b.matches.iter().map(|m| m.inliers).max().unwrap_or(0);
         let p = b.filter.prior().expect("the prior is in use at the end");
         let offered: Vec<f64> = p
@@ -338,8 +340,7 @@ fn a_transform_is_adopted_once_the_next_match_confirms_it() {
     // With two confirmations the first accepted match only waits ("pending");
     // the transform is adopted at the attempt that finds it again (within 0.1 rad / 0.5 m).
     // With one (the default), the first accepted match is adopted at once.
-    use super::{PriorSettings, PriorTracker};
-    use crate::run::run_filter_with_prior;
+    use super::PriorSettings;
     let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
     let out = indoor_sim("user02", 1);
     let prior = out.truth_map(&map_from_local, 0.3);
@@ -348,15 +349,7 @@ fn a_transform_is_adopted_once_the_next_match_confirms_it() {
             confirmations,
             ..PriorSettings::default()
         };
-        let tracker = PriorTracker::new(prior.clone(), settings, 1).unwrap();
-        let b = run_filter_with_prior(
-            &out.log,
-            Some(&out.truth),
-            cfg(1, 150),
-            false,
-            Some(tracker),
-        )
-        .unwrap();
+        let b = run_with_prior(&out, &prior, settings, 1, 150);
         let first = b.matches.iter().position(|m| m.accepted).expect("matched");
         let adopted = b
             .matches
@@ -385,8 +378,7 @@ fn a_transform_is_adopted_once_the_next_match_confirms_it() {
 fn an_unrelated_prior_map_is_never_used() {
     // A prior of the same size with the transmitters of another place (positions drawn at
     // random): no match is accepted, nothing is taken over, the run equals the one alone.
-    use super::{PriorSettings, PriorTracker};
-    use crate::run::run_filter_with_prior;
+    use super::PriorSettings;
     use rand::{RngExt, SeedableRng};
     let out = indoor_sim("user02", 4);
     let truth_prior = out.truth_map(&nalgebra::Isometry2::identity(), 0.3);
@@ -403,15 +395,7 @@ fn an_unrelated_prior_map_is_never_used() {
         .collect();
     let prior = echomap_shared::TransmitterMap::new(2.0, scrambled).unwrap();
     let a = run_filter(&out.log, Some(&out.truth), cfg(4, 150), false).unwrap();
-    let tracker = PriorTracker::new(prior, PriorSettings::default(), 4).unwrap();
-    let b = run_filter_with_prior(
-        &out.log,
-        Some(&out.truth),
-        cfg(4, 150),
-        false,
-        Some(tracker),
-    )
-    .unwrap();
+    let b = run_with_prior(&out, &prior, PriorSettings::default(), 4, 150);
     assert!(!b.matches.is_empty());
     assert!(b.matches.iter().all(|m| !m.accepted), "{:?}", b.matches);
     assert_eq!(a.rows, b.rows);
@@ -1200,22 +1184,11 @@ fn without_candidates_the_prior_only_fuses_into_matched_transmitters() {
     // tracks (the default), particles start transmitters from prior copies; not offered and
     // fused instead, no transmitter starts from a copy, the matched ones are fused in, and
     // every prior transmitter a particle holds is one it fused.
-    use super::{PriorSettings, PriorTracker};
-    use crate::run::run_filter_with_prior;
+    use super::PriorSettings;
     let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
     let out = indoor_sim("user02", 2);
     let prior = out.truth_map(&map_from_local, 0.3);
-    let run = |settings: PriorSettings| {
-        let tracker = PriorTracker::new(prior.clone(), settings, 2).unwrap();
-        run_filter_with_prior(
-            &out.log,
-            Some(&out.truth),
-            cfg(2, 150),
-            false,
-            Some(tracker),
-        )
-        .unwrap()
-    };
+    let run = |settings: PriorSettings| run_with_prior(&out, &prior, settings, 2, 150);
     let copies = |r: &crate::run::RunOutput| -> usize {
         r.filter
             .particles()
@@ -1252,8 +1225,7 @@ fn a_crowd_whose_offsets_carry_another_receivers_bias_fuses_only_with_the_offset
     // user's range bias, far beyond the offsets' stds). Fused as it is, the offsets fail the χ²
     // gate; with an offset floor of 10 m the pairs fuse on their positions, and the prior the
     // filter holds carries the floor on every offset's variance.
-    use super::{PriorSettings, PriorTracker};
-    use crate::run::run_filter_with_prior;
+    use super::PriorSettings;
     let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
     let out = indoor_sim("user02", 2);
     let truth = out.truth_map(&map_from_local, 0.1);
@@ -1274,15 +1246,7 @@ fn a_crowd_whose_offsets_carry_another_receivers_bias_fuses_only_with_the_offset
             offset_floor_m: floor,
             ..PriorSettings::default()
         };
-        let tracker = PriorTracker::new(prior.clone(), settings, 2).unwrap();
-        run_filter_with_prior(
-            &out.log,
-            Some(&out.truth),
-            cfg(2, 150),
-            false,
-            Some(tracker),
-        )
-        .unwrap()
+        run_with_prior(&out, &prior, settings, 2, 150)
     };
     let fused = |r: &crate::run::RunOutput| r.matches.iter().map(|m| m.fused).sum::<f64>();
     let as_is = run(0.0);
