@@ -295,6 +295,12 @@ pub struct RunArgs {
     /// fused), once per pair; default `false`
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().fuse_matched, action = clap::ArgAction::Set)]
     pub prior_fuse_matched: bool,
+    /// `true`: run the filter without the prior beside the one with it (same seed) and report,
+    /// at every snapshot, the one under which the detections so far are the more likely
+    /// (cumulative log evidence, a Bayes factor of the two models); the map of the one ahead
+    /// at the end is written and uploaded; default `false`
+    #[arg(long, default_value_t = false, action = clap::ArgAction::Set)]
+    pub prior_fallback: bool,
     /// `false`: prior transmitters are offered to no new track (the prior is used for
     /// matching and, with `--prior-fuse-matched true`, fused into the matched own
     /// transmitters only); default `true`
@@ -724,8 +730,12 @@ pub fn run(cli: Cli) -> Result<()> {
                 .filter(|p| !p.is_empty() && !a.ignore_prior)
                 .map(|p| crate::filter::PriorTracker::new(p, settings, a.seed));
             let tracker = tracker.transpose()?;
-            let out =
-                crate::run::run_filter_with_prior(&log, truth.as_ref(), cfg, !a.quiet, tracker)?;
+            let out = match tracker {
+                Some(t) if a.prior_fallback => {
+                    crate::run::run_filter_with_fallback(&log, truth.as_ref(), cfg, !a.quiet, t)?
+                }
+                t => crate::run::run_filter_with_prior(&log, truth.as_ref(), cfg, !a.quiet, t)?,
+            };
             crate::output::write_run(&out, truth.as_ref(), &log, &a.out)?;
             crate::output::print_summary(&out, truth.as_ref(), &log);
             if let Some(r) = &remote {
@@ -1309,18 +1319,23 @@ mod tests {
     }
 
     #[test]
-    fn fusing_matched_prior_transmitters_is_off_unless_told() {
+    fn fusing_and_the_fallback_are_off_unless_told() {
         let parse = |extra: &[&str]| {
             let mut args = vec!["echomap-agent", "run", "--out", "o"];
             args.extend_from_slice(extra);
             Cli::try_parse_from(args).map(|c| match c.command {
-                Command::Run(a) => a.prior_fuse_matched,
+                Command::Run(a) => (a.prior_fuse_matched, a.prior_fallback),
                 _ => unreachable!(),
             })
         };
-        assert!(!parse(&[]).unwrap());
-        assert!(parse(&["--prior-fuse-matched", "true"]).unwrap());
+        assert_eq!(parse(&[]).unwrap(), (false, false));
+        assert_eq!(
+            parse(&["--prior-fuse-matched", "true"]).unwrap(),
+            (true, false)
+        );
+        assert_eq!(parse(&["--prior-fallback", "true"]).unwrap(), (false, true));
         assert!(parse(&["--prior-fuse-matched", "yes please"]).is_err());
+        assert!(parse(&["--prior-fallback", "1.0"]).is_err());
     }
 
     #[test]

@@ -18,6 +18,11 @@ pub struct TrackRow {
     pub ess: f64,
     pub transmitters: f64,
     pub components: f64,
+    /// ln p(z₁..z_t) of the filter the row comes from ([`crate::filter::StepStats`])
+    pub log_evidence: f64,
+    /// with `--prior-fallback`: whether the row is the filter with the prior's (true) or the
+    /// one without (false); None otherwise
+    pub with_prior: Option<bool>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -34,7 +39,7 @@ pub struct TruthCols {
 
 pub fn track_csv(rows: &[TrackRow]) -> String {
     let mut s = String::from(
-        "t,x,y,traveled_m,true_x,true_y,mae_m,rmse_m,err_m,ess,transmitters,components\n",
+        "t,x,y,traveled_m,true_x,true_y,mae_m,rmse_m,err_m,ess,transmitters,components,log_evidence,model\n",
     );
     for r in rows {
         let truth = match r.truth {
@@ -44,9 +49,23 @@ pub fn track_csv(rows: &[TrackRow]) -> String {
             ),
             None => ",,,,".to_string(),
         };
+        let model = match r.with_prior {
+            Some(true) => "prior",
+            Some(false) => "alone",
+            None => "",
+        };
         s.push_str(&format!(
-            "{},{},{},{},{},{},{},{}\n",
-            r.t, r.x, r.y, r.traveled_m, truth, r.ess, r.transmitters, r.components
+            "{},{},{},{},{},{},{},{},{},{}\n",
+            r.t,
+            r.x,
+            r.y,
+            r.traveled_m,
+            truth,
+            r.ess,
+            r.transmitters,
+            r.components,
+            r.log_evidence,
+            model
         ));
     }
     s

@@ -99,6 +99,8 @@ pub fn run_filter_with_prior(
             ess: stats.ess,
             transmitters: stats.transmitters,
             components: stats.components,
+            log_evidence: stats.log_evidence,
+            with_prior: None,
         });
         bar.inc(1);
     }
@@ -113,4 +115,54 @@ pub fn run_filter_with_prior(
         matches: tracker.map(|t| t.events).unwrap_or_default(),
         had_prior,
     })
+}
+
+/// [`run_filter_with_prior`] and [`run_filter`] side by side on the same log and seed: at
+/// every snapshot the row of the filter under which the detections so far are the more likely
+/// (the larger cumulative log evidence ln p(z₁..z_t), i.e. the Bayes factor of "the prior map
+/// is right" against "no prior"; ties go to the prior). Causal: each row uses only the
+/// snapshots up to it. The map, the filter and the verdict for the upload are those of the
+/// filter ahead at the end; the match events are the prior filter's.
+pub fn run_filter_with_fallback(
+    log: &MeasurementLog,
+    truth: Option<&GroundTruth>,
+    cfg: FilterConfig,
+    progress: bool,
+    tracker: PriorTracker,
+) -> Result<RunOutput> {
+    let (with, alone) = rayon::join(
+        || run_filter_with_prior(log, truth, cfg.clone(), progress, Some(tracker)),
+        || run_filter(log, truth, cfg.clone(), false),
+    );
+    Ok(select_by_evidence(with?, alone?))
+}
+
+/// Row by row the more likely of two runs of one log (see [`run_filter_with_fallback`]).
+fn select_by_evidence(with: RunOutput, alone: RunOutput) -> RunOutput {
+    let rows = with
+        .rows
+        .iter()
+        .zip(&alone.rows)
+        .map(|(w, a)| {
+            let prior = w.log_evidence >= a.log_evidence;
+            TrackRow {
+                with_prior: Some(prior),
+                ..if prior { w.clone() } else { a.clone() }
+            }
+        })
+        .collect::<Vec<_>>();
+    let prior_ahead = rows.last().is_none_or(|r| r.with_prior == Some(true));
+    let matches = with.matches;
+    let (map, filter) = if prior_ahead {
+        (with.map, with.filter)
+    } else {
+        (alone.map, alone.filter)
+    };
+    RunOutput {
+        rows,
+        map,
+        filter,
+        matches,
+        had_prior: true,
+    }
 }

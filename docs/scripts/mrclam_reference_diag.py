@@ -8,7 +8,9 @@ reference robot R. Per run `robotR/run-seedS/` it prints:
 - the *shape* error of every map: the median distance from each transmitter mean (existence
   >= 0.5, mixture mean) to the nearest true landmark after the best rigid fit of the map to the
   landmarks (ICP from 12 start angles) — R's own map alone, each contributor's upload, and the
-  crowd map R received (`prior.json`, in the first contributor's frame);
+  crowd map R received (`prior.json`, in the first contributor's frame); for the crowd also a
+  trimmed fit (the closest 60 % of pairs), which a few far-off transmitters cannot pull: its
+  median and the share of the crowd's transmitters within 0.3 m of a landmark;
 - the *frame* error of R's own map: the same median without the fit (R's true local frame);
 - the prior matches R adopted (`prior_matches.csv`, actions adopted/replaced): the time of the
   first, and for the first and the last the rotation (rad) and the displacement at the
@@ -111,6 +113,30 @@ def icp(src, dst):
     return best
 
 
+def icp_trimmed(src, dst, keep=0.6):
+    """ICP as `icp`, but after 5 full passes each fit uses only the closest `keep` share of the
+    pairs, so transmitters far from every landmark (a contributor's duplicates) do not pull
+    the fit: (median error, share of transmitters within 0.3 m of a landmark)."""
+    best = None
+    cd = (sum(p[0] for p in dst) / len(dst), sum(p[1] for p in dst) / len(dst))
+    cs = (sum(p[0] for p in src) / len(src), sum(p[1] for p in src) / len(src))
+    for k in range(12):
+        a = 2 * math.pi * k / 12
+        r = apply((a, 0.0, 0.0), cs)
+        tf = (a, cd[0] - r[0], cd[1] - r[1])
+        for it in range(30):
+            moved = [apply(tf, p) for p in src]
+            pairs = sorted(((math.dist(m, nearest(m, dst)), p, nearest(m, dst)) for m, p in zip(moved, src)),
+                           key=lambda x: x[0])
+            n = max(3, int(len(pairs) * (keep if it >= 5 else 1.0)))
+            tf = rigid([q[1] for q in pairs[:n]], [q[2] for q in pairs[:n]])
+        d = [math.dist(apply(tf, p), nearest(apply(tf, p), dst)) for p in src]
+        e = median(d)
+        if best is None or e < best[0]:
+            best = (e, sum(1 for x in d if x < 0.3) / len(d))
+    return best
+
+
 def wrap(a):
     return (a + math.pi) % (2 * math.pi) - math.pi
 
@@ -127,6 +153,7 @@ centroid = (sum(p[0] for p in lm_ref) / len(lm_ref), sum(p[1] for p in lm_ref) /
 first_from_ref = compose(inverse(world_from_local(first)), world_from_local(ref))
 
 print("seed | mean MAE alone -> with | own map frame / shape | contributors' shapes | crowd shape "
+      "| crowd core (trimmed fit): median, share within 0.3 m "
       "| first match t | first / last adopted transform: rotation (rad), displacement (m)")
 for run in sorted(glob.glob(f"{root}/robot{ref}/run-seed*"), key=lambda s: int(s.rsplit("seed", 1)[1])):
     seed = int(run.rsplit("seed", 1)[1])
@@ -142,6 +169,7 @@ for run in sorted(glob.glob(f"{root}/robot{ref}/run-seed*"), key=lambda s: int(s
             shapes.append(f"r{r} {icp(means(f'{run}/robot{r}/map.json'), landmarks(r))[0]:.2f}")
     crowd = means(f"{run}/prior.json")
     crowd_err, first_from_crowd = icp(crowd, lm_first)
+    core, share = icp_trimmed(crowd, lm_first)
     right = compose(inverse(first_from_crowd), first_from_ref)  # crowd-frame from R's true frame
     rows = [r for r in csv.DictReader(open(f"{run}/reference-with-others/prior_matches.csv"))
             if r["action"] in ("adopted", "replaced")]
@@ -155,4 +183,4 @@ for run in sorted(glob.glob(f"{root}/robot{ref}/run-seed*"), key=lambda s: int(s
         (a0, d0), (a1, d1) = offset(rows[0]), offset(rows[-1])
         used = f"{rows[0]['t']} s | {a0:+.2f}, {d0:.2f} / {a1:+.2f}, {d1:.2f}"
     print(f"{seed} | {alone:.3f} -> {withm:.3f} | {median_nn(own, lm_ref):.2f} / {icp(own, lm_ref)[0]:.2f} "
-          f"| {' '.join(shapes)} | {crowd_err:.2f} | {used}")
+          f"| {' '.join(shapes)} | {crowd_err:.2f} | {core:.2f}, {share:.0%} | {used}")

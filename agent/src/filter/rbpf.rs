@@ -160,6 +160,10 @@ pub struct StepStats {
     pub components: f64,
     /// distance travelled by the weighted-mean estimate (m)
     pub traveled_m: f64,
+    /// ln p(z₁..z_t): the summed log of every snapshot's evidence, the particles' mean
+    /// likelihood of its detections (association included); reweighting between snapshots
+    /// (`fuse_prior`) is not counted
+    pub log_evidence: f64,
 }
 
 #[derive(Debug)]
@@ -176,6 +180,7 @@ pub struct Filter {
     prev_t: Option<f64>,
     traveled: f64,
     last_mean: Point2<f64>,
+    log_evidence: f64,
     /// the prior map in the agent frame, once matched
     prior: Option<Arc<Prior>>,
 }
@@ -451,6 +456,7 @@ impl Filter {
             prev_t: None,
             traveled: 0.0,
             last_mean: Point2::origin(),
+            log_evidence: 0.0,
             prior: None,
         }
     }
@@ -716,6 +722,9 @@ impl Filter {
             })
             .collect();
         let merge_now = self.step.is_multiple_of(10);
+        // the weights' total before the detections: 1 unless something reweighted them since
+        // the last snapshot, which is then not counted as evidence
+        let before = log_sum_exp(self.particles.iter().map(|p| p.log_w));
         let rngs: Vec<ChaCha8Rng> = (0..self.particles.len())
             .map(|i| self.particle_rng(i))
             .collect();
@@ -774,6 +783,10 @@ impl Filter {
                 });
         }
         // Normalize, estimate, resample.
+        let after = log_sum_exp(self.particles.iter().map(|p| p.log_w));
+        if before.is_finite() {
+            self.log_evidence += after - before;
+        }
         let w = self.weights();
         let ess = 1.0 / w.iter().map(|x| x * x).sum::<f64>();
         let (mut mx, mut my) = (0.0, 0.0);
@@ -822,6 +835,7 @@ impl Filter {
             transmitters: ntx,
             components: ncomp,
             traveled_m: self.traveled,
+            log_evidence: self.log_evidence,
         }
     }
 
