@@ -974,12 +974,13 @@ pub const MRCLAM_RUN_ARGS: [&str; 18] = [
 ];
 
 /// How the agents of the cooperative MRCLAM experiment use the crowd's map (README,
-/// "Cooperative Channel-SLAM", session 23: over 20 paired runs robots 1, 4 and 5 lower with
-/// the others' map beyond the spread, robot 2 lower by the median, robot 3 not): the crowd
-/// fused into the matched own transmitters and no prior copies for new tracks, its positions
-/// floored at 0.15 m, one transform draw per particle, and the transform anchored to the
-/// first 30 s of detections.
-pub const MRCLAM_PRIOR_ARGS: [&str; 10] = [
+/// "Cooperative Channel-SLAM", sessions 23 and 24): the crowd fused into the matched own
+/// transmitters and no prior copies for new tracks, its positions floored at 0.15 m, one
+/// transform draw per particle, the transform anchored to the first 30 s of detections, and
+/// (session 24) the run without the map beside the run with it, each snapshot reporting the
+/// one that explains the detections better. Over 20 paired runs every robot is lower with the
+/// others' map by the median, robots 1, 3, 4 and 5 beyond the spread.
+pub const MRCLAM_PRIOR_ARGS: [&str; 12] = [
     "--prior-floor",
     "0.15",
     "--prior-fuse-matched",
@@ -990,6 +991,8 @@ pub const MRCLAM_PRIOR_ARGS: [&str; 10] = [
     "1",
     "--prior-anchor-s",
     "30",
+    "--prior-fallback",
+    "true",
 ];
 
 /// The cooperative experiment's matching visibility weight: as given, else 1 — and 0 on
@@ -1254,6 +1257,16 @@ mod tests {
                 _ => panic!("not the run command"),
             }
         };
+        let fallback = |extra: &[&str]| {
+            let mut args = vec!["echomap-agent", "run", "--out", "o"];
+            args.extend_from_slice(&MRCLAM_PRIOR_ARGS);
+            args.extend_from_slice(extra);
+            match Cli::try_parse_from(args).unwrap().command {
+                Command::Run(r) => r.prior_fallback,
+                _ => panic!("not the run command"),
+            }
+        };
+        assert!(fallback(&[]) && !fallback(&["--prior-fallback", "false"]));
         let plain = crate::filter::PriorSettings::default();
         let s = settings(&[]).unwrap();
         assert!(s.fuse_matched && !plain.fuse_matched);
