@@ -1247,25 +1247,18 @@ mod tests {
 
     #[test]
     fn the_mrclam_experiments_agents_fuse_the_anchored_crowd_unless_told_otherwise() {
-        let settings = |extra: &[&str]| {
+        let run_args = |extra: &[&str]| {
             let mut args = vec!["echomap-agent", "run", "--out", "o"];
             args.extend_from_slice(&MRCLAM_RUN_ARGS);
             args.extend_from_slice(&MRCLAM_PRIOR_ARGS);
             args.extend_from_slice(extra);
             match Cli::try_parse_from(args)?.command {
-                Command::Run(r) => r.prior_settings(),
+                Command::Run(r) => Ok::<_, anyhow::Error>(r),
                 _ => panic!("not the run command"),
             }
         };
-        let fallback = |extra: &[&str]| {
-            let mut args = vec!["echomap-agent", "run", "--out", "o"];
-            args.extend_from_slice(&MRCLAM_PRIOR_ARGS);
-            args.extend_from_slice(extra);
-            match Cli::try_parse_from(args).unwrap().command {
-                Command::Run(r) => r.prior_fallback,
-                _ => panic!("not the run command"),
-            }
-        };
+        let settings = |extra: &[&str]| run_args(extra)?.prior_settings();
+        let fallback = |extra: &[&str]| run_args(extra).unwrap().prior_fallback;
         assert!(fallback(&[]) && !fallback(&["--prior-fallback", "false"]));
         let plain = crate::filter::PriorSettings::default();
         let s = settings(&[]).unwrap();
