@@ -95,8 +95,9 @@ def rigid(src, dst):
     return (a, cd[0] - (c * cs[0] - s * cs[1]), cd[1] - (s * cs[0] + c * cs[1]))
 
 
-def icp(src, dst):
-    """Best rigid fit of src onto dst (ICP from 12 start angles): (median error, transform)."""
+def fit_from_angles(src, dst, passes, keep=1.0):
+    """ICP of src onto dst from 12 start angles; after 5 full passes each fit uses only the
+    closest `keep` share of the pairs. The best start's (median error, transform, distances)."""
     best = None
     cd = (sum(p[0] for p in dst) / len(dst), sum(p[1] for p in dst) / len(dst))
     cs = (sum(p[0] for p in src) / len(src), sum(p[1] for p in src) / len(src))
@@ -104,37 +105,31 @@ def icp(src, dst):
         a = 2 * math.pi * k / 12
         r = apply((a, 0.0, 0.0), cs)
         tf = (a, cd[0] - r[0], cd[1] - r[1])
-        for _ in range(20):
+        for it in range(passes):
             moved = [apply(tf, p) for p in src]
-            tf = rigid(src, [nearest(p, dst) for p in moved])
-        e = median_nn([apply(tf, p) for p in src], dst)
+            pairs = [(math.dist(m, nearest(m, dst)), p, nearest(m, dst)) for m, p in zip(moved, src)]
+            if keep < 1.0 and it >= 5:
+                pairs = sorted(pairs, key=lambda x: x[0])[:max(3, int(len(pairs) * keep))]
+            tf = rigid([q[1] for q in pairs], [q[2] for q in pairs])
+        d = [math.dist(apply(tf, p), nearest(apply(tf, p), dst)) for p in src]
+        e = median(d)
         if best is None or e < best[0]:
-            best = (e, tf)
+            best = (e, tf, d)
     return best
+
+
+def icp(src, dst):
+    """Best rigid fit of src onto dst (ICP from 12 start angles): (median error, transform)."""
+    e, tf, _ = fit_from_angles(src, dst, 20)
+    return e, tf
 
 
 def icp_trimmed(src, dst, keep=0.6):
     """ICP as `icp`, but after 5 full passes each fit uses only the closest `keep` share of the
     pairs, so transmitters far from every landmark (a contributor's duplicates) do not pull
     the fit: (median error, share of transmitters within 0.3 m of a landmark)."""
-    best = None
-    cd = (sum(p[0] for p in dst) / len(dst), sum(p[1] for p in dst) / len(dst))
-    cs = (sum(p[0] for p in src) / len(src), sum(p[1] for p in src) / len(src))
-    for k in range(12):
-        a = 2 * math.pi * k / 12
-        r = apply((a, 0.0, 0.0), cs)
-        tf = (a, cd[0] - r[0], cd[1] - r[1])
-        for it in range(30):
-            moved = [apply(tf, p) for p in src]
-            pairs = sorted(((math.dist(m, nearest(m, dst)), p, nearest(m, dst)) for m, p in zip(moved, src)),
-                           key=lambda x: x[0])
-            n = max(3, int(len(pairs) * (keep if it >= 5 else 1.0)))
-            tf = rigid([q[1] for q in pairs[:n]], [q[2] for q in pairs[:n]])
-        d = [math.dist(apply(tf, p), nearest(apply(tf, p), dst)) for p in src]
-        e = median(d)
-        if best is None or e < best[0]:
-            best = (e, sum(1 for x in d if x < 0.3) / len(d))
-    return best
+    e, _, d = fit_from_angles(src, dst, 30, keep)
+    return e, sum(1 for x in d if x < 0.3) / len(d)
 
 
 def wrap(a):
