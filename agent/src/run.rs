@@ -141,18 +141,17 @@ pub fn run_filter_with_fallback(
 fn select_by_evidence(with: RunOutput, alone: RunOutput) -> RunOutput {
     let rows = with
         .rows
-        .iter()
-        .zip(&alone.rows)
+        .into_iter()
+        .zip(alone.rows)
         .map(|(w, a)| {
             let prior = w.log_evidence >= a.log_evidence;
             TrackRow {
                 with_prior: Some(prior),
-                ..if prior { w.clone() } else { a.clone() }
+                ..if prior { w } else { a }
             }
         })
         .collect::<Vec<_>>();
     let prior_ahead = rows.last().is_none_or(|r| r.with_prior == Some(true));
-    let matches = with.matches;
     let (map, filter) = if prior_ahead {
         (with.map, with.filter)
     } else {
@@ -162,7 +161,7 @@ fn select_by_evidence(with: RunOutput, alone: RunOutput) -> RunOutput {
         rows,
         map,
         filter,
-        matches,
+        matches: with.matches,
         had_prior: true,
     }
 }

@@ -629,7 +629,11 @@ impl Filter {
 
     /// Normalized particle weights.
     pub fn weights(&self) -> Vec<f64> {
-        let total = log_sum_exp(self.particles.iter().map(|p| p.log_w));
+        self.weights_given(log_sum_exp(self.particles.iter().map(|p| p.log_w)))
+    }
+
+    /// The weights normalized by their log total `total`.
+    fn weights_given(&self, total: f64) -> Vec<f64> {
         self.particles
             .iter()
             .map(|p| (p.log_w - total).exp())
@@ -787,7 +791,7 @@ impl Filter {
         if before.is_finite() {
             self.log_evidence += after - before;
         }
-        let w = self.weights();
+        let w = self.weights_given(after);
         let ess = 1.0 / w.iter().map(|x| x * x).sum::<f64>();
         let (mut mx, mut my) = (0.0, 0.0);
         for (p, w) in self.particles.iter().zip(&w) {
@@ -820,9 +824,9 @@ impl Filter {
         if resampled {
             self.resample(&w);
         } else {
-            let total = log_sum_exp(self.particles.iter().map(|p| p.log_w));
+            // the weights are those `after` totals (nothing reweighted them since)
             for p in &mut self.particles {
-                p.log_w -= total;
+                p.log_w -= after;
             }
         }
         self.step += 1;
