@@ -271,6 +271,11 @@ pub struct RunArgs {
     /// pose is still known in the local frame then; 0: the match's own fit is used)
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().anchor_window_s, value_parser = non_negative)]
     pub prior_anchor_s: f64,
+    /// `true`: no transform is adopted before the anchor window (`--prior-anchor-s`) has
+    /// closed, so the window's detections are placed from poses the prior has not pulled yet;
+    /// default `false`
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().hold_in_anchor_window, action = clap::ArgAction::Set)]
+    pub prior_anchor_hold: bool,
     /// `true`: prior transmitters that the match pairs with one of the agent's own are no
     /// candidates for new tracks (default `false`: every prior transmitter stays one)
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().claim_matched, action = clap::ArgAction::Set)]
@@ -343,6 +348,7 @@ impl RunArgs {
             fuse_matched: a.prior_fuse_matched,
             offer_to_new_tracks: a.prior_candidates,
             anchor_window_s: a.prior_anchor_s,
+            hold_in_anchor_window: a.prior_anchor_hold,
             matching: echomap_shared::matching::MatchConfig::default()
                 .with_visibility_weight(a.prior_visibility_weight)
                 .with_location_score(a.prior_match_score.location_score()),

@@ -228,6 +228,12 @@ pub struct PriorSettings {
     /// but over the 10-run indoor cooperative experiment it gave no consistent gain (c21
     /// final MAE median 0.70 m against 0.67 m without; README)
     pub anchor_window_s: f64,
+    /// no transform is adopted while the anchor window is open (accepted matches are
+    /// `pending`): the anchor points are placed from the filter's own poses, and a transform
+    /// in use pulls those poses into its frame — one adopted early with a rotation error
+    /// would then bias the points meant to correct it. The first attempt after the window
+    /// closes refits the match to all of them. Default false
+    pub hold_in_anchor_window: bool,
     /// prior transmitters that correspond to one of the agent's own in the match are no
     /// candidates for new tracks. Default false: on 8 seeded three-agent runs and on a
     /// perfect map it changed the error by less than the run-to-run spread (README)
@@ -277,6 +283,7 @@ impl Default for PriorSettings {
             offset_floor_m: 0.0,
             transform_draws: None,
             anchor_window_s: 0.0,
+            hold_in_anchor_window: false,
             claim_matched: false,
             confirmations: 1,
             agree_rad: 0.1,
@@ -301,7 +308,8 @@ pub struct MatchEvent {
     pub tx: f64,
     pub ty: f64,
     /// adopted | replaced | kept | dropped | pending (an accepted match awaiting
-    /// confirmation, no transform in use) | none
+    /// confirmation or, with `hold_in_anchor_window`, the window's end; no transform in use)
+    /// | none
     pub action: &'static str,
     /// anchor points the accepted transform was refitted to (0: the match's own fit)
     pub anchors: usize,
@@ -413,10 +421,10 @@ impl PriorTracker {
     pub fn after_step(&mut self, filter: &mut Filter, snap: &Snapshot) -> Result<()> {
         let t = snap.t;
         let t0 = *self.t0.get_or_insert(t);
-        if filter.has_aoa()
+        let in_window = filter.has_aoa()
             && self.settings.anchor_window_s > 0.0
-            && t - t0 <= self.settings.anchor_window_s
-        {
+            && t - t0 <= self.settings.anchor_window_s;
+        if in_window {
             let (x, y, heading) = mean_pose(filter);
             for m in &snap.components {
                 if let Some(aoa) = m.aoa {
@@ -508,6 +516,7 @@ impl PriorTracker {
             };
             self.pending = Some((fit, n));
             n >= self.settings.confirmations.max(1)
+                && !(in_window && self.settings.hold_in_anchor_window)
         };
         let action = if agrees {
             "kept"

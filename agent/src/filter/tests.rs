@@ -948,6 +948,58 @@ fn detections_of_the_first_second_anchor_the_matched_transform() {
 }
 
 #[test]
+fn holding_in_the_anchor_window_adopts_no_transform_before_it_closes() {
+    // A known map in another frame, an anchor window of 6 s and matching every 2 s from 2 s on.
+    // Without the hold the first accepted match (inside the window) is adopted; with it every
+    // accepted match inside the window stays pending, and the first one after it is adopted,
+    // refitted to the window's anchor points.
+    use super::{PriorSettings, PriorTracker};
+    use crate::run::run_filter_with_prior;
+    let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
+    for seed in 1..=2u64 {
+        let mut out = indoor_sim("user02", seed);
+        let keep = out.log.snapshots.iter().take_while(|s| s.t <= 14.0).count();
+        out.log.snapshots.truncate(keep);
+        out.truth.poses.truncate(keep);
+        let t0 = out.log.snapshots[0].t;
+        let prior = out.truth_map(&map_from_local, 0.3);
+        for hold in [false, true] {
+            let settings = PriorSettings {
+                anchor_window_s: 6.0,
+                hold_in_anchor_window: hold,
+                first_match_s: 2.0,
+                match_every_s: 2.0,
+                ..PriorSettings::default()
+            };
+            let tracker = PriorTracker::new(prior.clone(), settings, seed).unwrap();
+            let run = run_filter_with_prior(&out.log, None, cfg(seed, 200), false, Some(tracker))
+                .unwrap();
+            let inside: Vec<_> = run.matches.iter().filter(|m| m.t - t0 <= 6.0).collect();
+            assert!(
+                inside.iter().any(|m| m.accepted),
+                "seed {seed}, hold {hold}: no accepted match inside the window: {:?}",
+                run.matches
+            );
+            let adopted = run
+                .matches
+                .iter()
+                .find(|m| m.action == "adopted")
+                .unwrap_or_else(|| panic!("seed {seed}, hold {hold}: {:?}", run.matches));
+            assert_eq!(adopted.t - t0 > 6.0, hold, "seed {seed}: {adopted:?}");
+            if hold {
+                assert!(
+                    inside
+                        .iter()
+                        .all(|m| m.action == if m.accepted { "pending" } else { "none" }),
+                    "seed {seed}: {inside:?}"
+                );
+                assert!(adopted.anchors >= 3, "seed {seed}: {adopted:?}");
+            }
+        }
+    }
+}
+
+#[test]
 fn a_motion_only_snapshot_is_no_visibility_evidence() {
     // One detection of track 1, then a snapshot without a channel estimate, then one with an
     // estimate that does not report track 1: only the last counts as "not seen".
