@@ -38,6 +38,10 @@ pub struct TxState {
     /// started from a prior-map transmitter under the transform in use (cleared when a
     /// disagreeing transform releases it, see [`Filter::release_prior_copies`])
     pub from_prior: bool,
+    /// the mixture it was started from: the wide initialization of its first detection
+    /// (None for a prior copy). `Filter::fuse_prior` measures how much better the crowd's
+    /// estimate is predicted now than it was then (the Occam factor of the fusion)
+    pub birth: Option<Arc<Vec<Comp>>>,
 }
 
 #[derive(Debug, Clone)]
@@ -161,8 +165,8 @@ pub struct StepStats {
     /// distance travelled by the weighted-mean estimate (m)
     pub traveled_m: f64,
     /// ln p(z₁..z_t): the summed log of every snapshot's evidence, the particles' mean
-    /// likelihood of its detections (association included); reweighting between snapshots
-    /// (`fuse_prior`) is not counted
+    /// likelihood of its detections (association included), plus for every fusion of a prior
+    /// transmitter its Occam factor (see `Filter::fuse_prior`)
     pub log_evidence: f64,
 }
 
@@ -533,6 +537,15 @@ impl Filter {
     /// floor instead (a wrong pair neither pulls a transmitter nor leaves only the particles
     /// that happen to fit it). A fused prior transmitter is taken over: it is no candidate
     /// for the particle's new tracks. Returns the particle-weighted number of fused pairs.
+    ///
+    /// The filter's log evidence gains the fusion's Occam factor `ln Σ_p w_p·exp(Σ Δ)`: per
+    /// fused pair `Δ = ln overlap(now) − ln overlap(at birth)`, the overlap with the crowd's
+    /// estimate of the transmitter's mixture now and of the wide mixture its first detection
+    /// started (`TxState::birth`). That ratio is p(detections since | crowd) / p(detections
+    /// since): with the crowd's estimate as the transmitter's prior the detections after the
+    /// first would have been predicted that much better (or worse). A pair beyond the gate
+    /// counts `min(0, floor − ln overlap(at birth))`: evidence against the crowd, never for it.
+    /// The raw factor itself is not evidence (it has units and does not compare models).
     pub fn fuse_prior(&mut self, pairs: &[(u64, usize)], gate_chi2: f64) -> f64 {
         let Some(prior) = self.prior.clone() else {
             return 0.0;
@@ -543,11 +556,13 @@ impl Filter {
             .filter_map(|(t, j)| self.track_identity.get(t).map(|&id| (id, *j)))
             .collect();
         let cfg = &self.cfg;
-        let fused: Vec<usize> = self
+        let w_before = self.weights();
+        // per particle: transmitters fused, and the log Occam factor of the pairs
+        let fused: Vec<(usize, f64)> = self
             .particles
             .par_iter_mut()
             .map(|p| {
-                let mut n = 0;
+                let (mut n, mut occam) = (0, 0.0);
                 for &(id, j) in &ids {
                     if p.prior_used.contains(&(j as u32)) {
                         continue;
@@ -564,22 +579,36 @@ impl Filter {
                     else {
                         continue;
                     };
+                    // how well the transmitter's first detection alone predicted the crowd's
+                    // estimate (None for a copy: no Occam factor)
+                    let at_birth = p.txs[slot]
+                        .birth
+                        .as_ref()
+                        .and_then(|b| product_mixture(b, &theirs, f64::INFINITY))
+                        .map(|(_, l, _)| l);
                     if ll < floor {
                         p.log_w += floor;
+                        // beyond the gate the crowd disagrees: evidence against it, never for
+                        occam += at_birth.map_or(0.0, |b| (floor - b).min(0.0));
                         continue;
                     }
                     p.log_w += ll;
+                    occam += at_birth.map_or(0.0, |b| ll - b);
                     let tx = Arc::make_mut(&mut p.txs[slot]);
                     tx.comps = comps;
                     tidy(&mut tx.comps, cfg, true);
                     p.prior_used.push(j as u32);
                     n += 1;
                 }
-                n
+                (n, occam)
             })
             .collect();
+        let occam = log_sum_exp(fused.iter().zip(&w_before).map(|((_, o), w)| w.ln() + o));
+        if occam.is_finite() {
+            self.log_evidence += occam;
+        }
         let w = self.weights();
-        fused.iter().zip(&w).map(|(n, w)| *n as f64 * w).sum()
+        fused.iter().zip(&w).map(|((n, _), w)| *n as f64 * w).sum()
     }
 
     /// Particle-weighted number of transmitters started from the prior under the transform
@@ -625,6 +654,11 @@ impl Filter {
 
     pub fn visibility(&self) -> &Visibility {
         &self.visibility
+    }
+
+    /// ln p(z₁..z_t) so far (see `StepStats::log_evidence`).
+    pub fn log_evidence(&self) -> f64 {
+        self.log_evidence
     }
 
     /// Normalized particle weights.
@@ -1227,6 +1261,7 @@ impl Particle {
                         comps: c.comps.clone(),
                         reliability_m: prev.reliability_m,
                         from_prior: true,
+                        birth: None,
                     });
                     self.prior_used.push(idx);
                     continue;
@@ -1239,6 +1274,7 @@ impl Particle {
                 comps: c.comps.clone(),
                 reliability_m: prev.reliability_m + tentative,
                 from_prior: prev.from_prior,
+                birth: prev.birth.clone(),
             });
             for (t, b) in &mut self.bound {
                 if *t == pd.track {
@@ -1307,11 +1343,13 @@ impl Particle {
         updated: &mut Vec<bool>,
         from_prior: bool,
     ) {
+        let birth = (!from_prior).then(|| Arc::new(comps.clone()));
         self.txs.push(Arc::new(TxState {
             identity,
             comps,
             reliability_m: 0.0,
             from_prior,
+            birth,
         }));
         self.bound.push((track, (self.txs.len() - 1) as u32));
         updated.push(true);

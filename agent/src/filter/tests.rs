@@ -1185,12 +1185,27 @@ fn a_matched_prior_transmitter_fused_in_tightens_the_own_one_and_a_wrong_pair_is
         .unwrap()
         .0;
     let before = comps(&f);
+    let ev0 = f.log_evidence();
     assert_eq!(f.fuse_prior(&[(track, far)], 9.21), 0.0);
     assert_eq!(comps(&f), before, "a gated pair changes no transmitter");
+    let ev1 = f.log_evidence();
+    // the gated pair is evidence against the crowd (its Occam factor is at most 1)
+    assert!(
+        ev1 <= ev0,
+        "log evidence {ev0:.3} -> {ev1:.3} after a gated pair"
+    );
     let s0 = stats(&f);
     let pairs: Vec<(u64, usize)> = seen.iter().map(|s| (s.0, s.2)).collect();
     let fused = f.fuse_prior(&pairs, 9.21);
     let s1 = stats(&f);
+    // the true map predicts what the detections since each first one found: the fusion's
+    // Occam factor raises the evidence
+    let ev2 = f.log_evidence();
+    println!("log evidence {ev0:.2} -> {ev1:.2} (gated pair) -> {ev2:.2} (true pairs)");
+    assert!(
+        ev2 > ev1 + 1.0,
+        "log evidence {ev1:.3} -> {ev2:.3} after the true pairs"
+    );
     // the transmitters fused in at least one particle (the rest were outside the gate in all)
     let after = comps(&f);
     let changed: Vec<usize> = (0..seen.len())
