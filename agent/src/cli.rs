@@ -984,8 +984,9 @@ pub const MRCLAM_RUN_ARGS: [&str; 18] = [
 /// transmitters and no prior copies for new tracks, its positions floored at 0.15 m, one
 /// transform draw per particle, the transform anchored to the first 30 s of detections, and
 /// (session 24) the run without the map beside the run with it, each snapshot reporting the
-/// one that explains the detections better. Over 20 paired runs every robot is lower with the
-/// others' map by the median, robots 1, 3, 4 and 5 beyond the spread.
+/// one that explains the detections better (session 25: a fusion counts by its Occam factor).
+/// Over 20 paired runs every robot is lower with the others' map by the median, robots 1, 3, 4
+/// and 5 beyond the spread.
 pub const MRCLAM_PRIOR_ARGS: [&str; 12] = [
     "--prior-floor",
     "0.15",
