@@ -38,10 +38,39 @@ pub struct TxState {
     /// started from a prior-map transmitter under the transform in use (cleared when a
     /// disagreeing transform releases it, see [`Filter::release_prior_copies`])
     pub from_prior: bool,
-    /// the mixture it was started from: the wide initialization of its first detection
-    /// (None for a prior copy). `Filter::fuse_prior` measures how much better the crowd's
-    /// estimate is predicted now than it was then (the Occam factor of the fusion)
-    pub birth: Option<Arc<Vec<Comp>>>,
+    /// the detection it was started from (None for a prior copy): `Filter::fuse_prior`
+    /// measures how much better the crowd's estimate is predicted now than by the wide
+    /// mixture started then (the Occam factor of the fusion)
+    pub birth: Option<Birth>,
+}
+
+/// The first detection of a transmitter and the particle's pose then: enough to rebuild the
+/// mixture it started from (`initialize` is deterministic), at a few words per transmitter.
+#[derive(Debug, Clone, Copy)]
+pub struct Birth {
+    pose: Pose,
+    d: f64,
+    aoa: Option<f64>,
+    sd: f64,
+    sa: f64,
+}
+
+impl Birth {
+    fn of(pose: &Pose, m: &Meas) -> Self {
+        let (sd, sa) = m.sigmas();
+        Birth {
+            pose: *pose,
+            d: m.d(),
+            aoa: m.aoa(),
+            sd,
+            sa,
+        }
+    }
+
+    /// The wide mixture the transmitter started from.
+    fn mixture(&self, cfg: &FilterConfig) -> Vec<Comp> {
+        initialize(cfg, &self.pose, self.d, self.aoa, self.sd, self.sa)
+    }
 }
 
 #[derive(Debug, Clone)]
@@ -583,8 +612,7 @@ impl Filter {
                     // estimate (None for a copy: no Occam factor)
                     let at_birth = p.txs[slot]
                         .birth
-                        .as_ref()
-                        .and_then(|b| product_mixture(b, &theirs, f64::INFINITY))
+                        .and_then(|b| product_mixture(&b.mixture(cfg), &theirs, f64::INFINITY))
                         .map(|(_, l, _)| l);
                     if ll < floor {
                         p.log_w += floor;
@@ -1114,10 +1142,9 @@ impl Particle {
                         Cand::Prior(_) => None,
                     })
                     .collect();
-                let (sd, sa) = m.sigmas();
-                let comps = initialize(cfg, &self.pose, m.d(), m.aoa(), sd, sa);
+                let birth = Birth::of(&self.pose, m);
                 self.log_w += ln_p0;
-                self.start_transmitter(identity, comps, track, updated, false);
+                self.start_transmitter(identity, birth.mixture(cfg), track, updated, Some(birth));
                 self.pending.push(Pending {
                     track,
                     slot: (self.txs.len() - 1) as u32,
@@ -1174,15 +1201,14 @@ impl Particle {
             Some(Cand::Prior(pidx)) => {
                 let comps = self.prior_copy(prior, pidx, m, cfg, merge_now);
                 self.prior_used.push(pidx as u32);
-                self.start_transmitter(identity, comps, track, updated, true);
+                self.start_transmitter(identity, comps, track, updated, None);
             }
             None => {
-                let (sd, sa) = m.sigmas();
-                let comps = initialize(cfg, &self.pose, m.d(), m.aoa(), sd, sa);
+                let birth = Birth::of(&self.pose, m);
                 if cfg.association == Association::Off {
                     self.log_w += ln_p0;
                 }
-                self.start_transmitter(identity, comps, track, updated, false);
+                self.start_transmitter(identity, birth.mixture(cfg), track, updated, Some(birth));
             }
         }
     }
@@ -1274,7 +1300,7 @@ impl Particle {
                 comps: c.comps.clone(),
                 reliability_m: prev.reliability_m + tentative,
                 from_prior: prev.from_prior,
-                birth: prev.birth.clone(),
+                birth: prev.birth,
             });
             for (t, b) in &mut self.bound {
                 if *t == pd.track {
@@ -1334,21 +1360,21 @@ impl Particle {
         }
     }
 
-    /// A new transmitter of this particle, bound to `track`.
+    /// A new transmitter of this particle, bound to `track`: from the detection `birth`, or
+    /// (None) a prior copy.
     fn start_transmitter(
         &mut self,
         identity: u32,
         comps: Vec<Comp>,
         track: u64,
         updated: &mut Vec<bool>,
-        from_prior: bool,
+        birth: Option<Birth>,
     ) {
-        let birth = (!from_prior).then(|| Arc::new(comps.clone()));
         self.txs.push(Arc::new(TxState {
             identity,
             comps,
             reliability_m: 0.0,
-            from_prior,
+            from_prior: birth.is_none(),
             birth,
         }));
         self.bound.push((track, (self.txs.len() - 1) as u32));
