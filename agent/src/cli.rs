@@ -276,6 +276,11 @@ pub struct RunArgs {
     /// default `false`
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().hold_in_anchor_window, action = clap::ArgAction::Set)]
     pub prior_anchor_hold: bool,
+    /// `true`: the anchor points carry the agent's pose uncertainty at each detection (the
+    /// particles' spread of position and heading), which does not average out over a
+    /// transmitter's detections; default `false` (the pose counts as known)
+    #[arg(long, default_value_t = crate::filter::PriorSettings::default().anchor_pose_uncertainty, action = clap::ArgAction::Set)]
+    pub prior_anchor_pose: bool,
     /// `true`: prior transmitters that the match pairs with one of the agent's own are no
     /// candidates for new tracks (default `false`: every prior transmitter stays one)
     #[arg(long, default_value_t = crate::filter::PriorSettings::default().claim_matched, action = clap::ArgAction::Set)]
@@ -349,6 +354,7 @@ impl RunArgs {
             offer_to_new_tracks: a.prior_candidates,
             anchor_window_s: a.prior_anchor_s,
             hold_in_anchor_window: a.prior_anchor_hold,
+            anchor_pose_uncertainty: a.prior_anchor_pose,
             matching: echomap_shared::matching::MatchConfig::default()
                 .with_visibility_weight(a.prior_visibility_weight)
                 .with_location_score(a.prior_match_score.location_score()),
