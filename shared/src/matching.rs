@@ -262,11 +262,38 @@ pub fn fit_rigid_weighted(
     to: &[(Point2<f64>, Matrix2<f64>)],
     init: Isometry2<f64>,
 ) -> Option<Isometry2<f64>> {
+    weighted_gauss_newton(from, to, init).map(|(iso, _)| iso)
+}
+
+/// [`fit_rigid_weighted`] with the covariance of its estimate: the inverse of the
+/// Gauss–Newton information `Σ Jᵢᵀ Wᵢ Jᵢ` at the solution, over (θ, t_x, t_y) — what the
+/// pair covariances allow the fit to know if the pairs' errors are independent.
+pub fn fit_rigid_weighted_cov(
+    from: &[(Point2<f64>, Matrix2<f64>)],
+    to: &[(Point2<f64>, Matrix2<f64>)],
+    init: Isometry2<f64>,
+) -> Option<(Isometry2<f64>, Matrix3<f64>)> {
+    let (iso, normal) = weighted_gauss_newton(from, to, init)?;
+    let (angle, t) = (iso.rotation.angle(), iso.translation.vector);
+    let cov = normal(angle, t)?.0.cholesky()?.inverse();
+    Some((iso, cov))
+}
+
+/// The Gauss–Newton iteration of [`fit_rigid_weighted`]; also returns its normal equations
+/// (information matrix and gradient at a given θ, t).
+#[allow(clippy::type_complexity)]
+fn weighted_gauss_newton<'a>(
+    from: &'a [(Point2<f64>, Matrix2<f64>)],
+    to: &'a [(Point2<f64>, Matrix2<f64>)],
+    init: Isometry2<f64>,
+) -> Option<(
+    Isometry2<f64>,
+    impl Fn(f64, Vector2<f64>) -> Option<(Matrix3<f64>, Vector3<f64>)> + 'a,
+)> {
     if from.len() < 2 || from.len() != to.len() {
         return None;
     }
-    let (mut angle, mut t) = (init.rotation.angle(), init.translation.vector);
-    for _ in 0..20 {
+    let normal = move |angle: f64, t: Vector2<f64>| -> Option<(Matrix3<f64>, Vector3<f64>)> {
         let rot = nalgebra::Rotation2::new(angle).into_inner();
         let (mut h, mut g) = (Matrix3::<f64>::zeros(), Vector3::<f64>::zeros());
         for ((pf, cf), (pt, ct)) in from.iter().zip(to) {
@@ -278,6 +305,11 @@ pub fn fit_rigid_weighted(
             h += j.transpose() * w * j;
             g += j.transpose() * w * r;
         }
+        Some((h, g))
+    };
+    let (mut angle, mut t) = (init.rotation.angle(), init.translation.vector);
+    for _ in 0..20 {
+        let (h, g) = normal(angle, t)?;
         let step = h.cholesky()?.solve(&(-g));
         angle += step[0];
         t += Vector2::new(step[1], step[2]);
@@ -285,7 +317,8 @@ pub fn fit_rigid_weighted(
             break;
         }
     }
-    (angle.is_finite() && t.iter().all(|v| v.is_finite())).then(|| Isometry2::new(t, angle))
+    (angle.is_finite() && t.iter().all(|v| v.is_finite()))
+        .then(|| (Isometry2::new(t, angle), normal))
 }
 
 /// Uniform grid over the prior candidates' bounding box for radius queries, stored as

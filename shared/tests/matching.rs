@@ -3,7 +3,9 @@
 //! --nocapture`) and asserted.
 
 use echomap_shared::map::{Beta, Transmitter, TransmitterMap};
-use echomap_shared::matching::{MatchConfig, fit_rigid, fit_rigid_weighted, match_maps};
+use echomap_shared::matching::{
+    MatchConfig, fit_rigid, fit_rigid_weighted, fit_rigid_weighted_cov, match_maps,
+};
 use echomap_shared::merging::{MergeConfig, merge_maps};
 use echomap_shared::mixture::Component;
 use echomap_shared::{HexCell, HexGrid, wrap_angle};
@@ -710,6 +712,85 @@ fn the_weighted_fit_beats_least_squares_when_the_covariances_differ() {
     println!("weighted better in {better}/40, median error ratio {median:.3}");
     assert!(better >= 34, "weighted fit better in only {better} of 40");
     assert!(median < 0.5, "median error ratio {median:.3}");
+}
+
+/// The covariance `fit_rigid_weighted_cov` reports is the spread of its estimates: five
+/// points of one geometry, each with its own anisotropic covariance, drawn 2000 times; the
+/// empirical variances of θ and of the translation must match the reported ones within 10 %
+/// (the standard error of a variance from 2000 draws is ≈ 3 %), and the mean rotation must
+/// be the true one within three standard errors.
+#[test]
+fn the_weighted_fits_covariance_is_the_spread_of_its_estimates() {
+    let mut rng = ChaCha8Rng::seed_from_u64(31);
+    let truth = Isometry2::new(Vector2::new(3.0, -2.0), 0.7);
+    let pts: Vec<(Point2<f64>, Matrix2<f64>)> = (0..5)
+        .map(|i| {
+            let p = Point2::new(rng.random::<f64>() * 10.0, rng.random::<f64>() * 10.0);
+            let phi = rng.random::<f64>() * std::f64::consts::PI;
+            let (long, short) = (0.05 + 0.1 * i as f64, 0.05);
+            let u = Vector2::new(phi.cos(), phi.sin());
+            let v = Vector2::new(-u.y, u.x);
+            (
+                p,
+                u * u.transpose() * long * long + v * v.transpose() * short * short,
+            )
+        })
+        .collect();
+    let to: Vec<(Point2<f64>, Matrix2<f64>)> = pts
+        .iter()
+        .map(|(p, _)| (truth * p, Matrix2::identity() * 0.02f64.powi(2)))
+        .collect();
+    let (mut est, mut reported) = (Vec::new(), Vec::new());
+    for _ in 0..2000 {
+        let from: Vec<(Point2<f64>, Matrix2<f64>)> = pts
+            .iter()
+            .zip(&to)
+            .map(|((p, c), (_, ct))| {
+                let l = (c + truth.rotation.inverse().to_rotation_matrix().into_inner()
+                    * ct
+                    * truth.rotation.to_rotation_matrix().into_inner())
+                .cholesky()
+                .unwrap()
+                .l();
+                (p + l * Vector2::new(gauss(&mut rng), gauss(&mut rng)), *c)
+            })
+            .collect();
+        let (iso, cov) = fit_rigid_weighted_cov(&from, &to, Isometry2::identity()).unwrap();
+        est.push(Vector3::new(
+            iso.rotation.angle(),
+            iso.translation.x,
+            iso.translation.y,
+        ));
+        reported.push(cov);
+    }
+    let n = est.len() as f64;
+    let mean = est.iter().sum::<Vector3<f64>>() / n;
+    let emp = est
+        .iter()
+        .map(|e| (e - mean) * (e - mean).transpose())
+        .sum::<Matrix3<f64>>()
+        / (n - 1.0);
+    let rep = reported.iter().sum::<Matrix3<f64>>() / n;
+    println!(
+        "var θ {:.3e} (reported {:.3e}), var tx {:.3e} ({:.3e}), var ty {:.3e} ({:.3e})",
+        emp[(0, 0)],
+        rep[(0, 0)],
+        emp[(1, 1)],
+        rep[(1, 1)],
+        emp[(2, 2)],
+        rep[(2, 2)]
+    );
+    for k in 0..3 {
+        let ratio = emp[(k, k)] / rep[(k, k)];
+        assert!(
+            (ratio - 1.0).abs() < 0.1,
+            "variance {k}: empirical/reported {ratio:.3}"
+        );
+    }
+    assert!(
+        (mean.x - 0.7).abs() < 3.0 * (rep[(0, 0)] / n).sqrt() + 1e-3,
+        "{mean}"
+    );
 }
 
 /// MRCLAM dataset 6's 15 landmarks (`Landmark_Groundtruth.dat`, m): six clusters whose layout

@@ -16,7 +16,7 @@ pub mod visibility;
 pub mod vonmises;
 
 pub use config::{Association, BPrior, FilterConfig, NoiseModel};
-pub use prior::{Prior, PriorSettings, PriorTracker};
+pub use prior::{AnchorPose, Prior, PriorSettings, PriorTracker};
 pub use rbpf::{Filter, StepStats};
 
 #[cfg(test)]

@@ -7,6 +7,7 @@
 //! has `min_inliers` agreeing transmitters in the agent's current map, the prior is dropped
 //! (transmitters already taken over by particles stay, as the particles' own).
 
+use super::config::FilterConfig;
 use super::model::{Comp, mixture_moments};
 use super::rbpf::Filter;
 use super::srckf::SqrtGaussian;
@@ -15,13 +16,14 @@ use anyhow::Result;
 use echomap_shared::log::Snapshot;
 use echomap_shared::map::TransmitterMap;
 use echomap_shared::matching::{
-    LocationScore, MatchConfig, MatchResult, fit_rigid_weighted, match_maps, score_transform,
+    LocationScore, MatchConfig, MatchResult, fit_rigid_weighted, fit_rigid_weighted_cov,
+    match_maps, score_transform,
 };
 use echomap_shared::{Beta, HexCell, HexGrid};
 use nalgebra::{Isometry2, Matrix2, Matrix3, Point2, Vector2, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
 use std::ops::AddAssign;
 
@@ -76,6 +78,18 @@ impl TransformUncertainty {
             var_t: sigma2 / n as f64,
             var_theta: sigma2 / spread,
         })
+    }
+
+    /// Raises the variances to at least those of a fit `map_from_agent` with covariance `cov`
+    /// over (θ, t_x, t_y) (`fit_rigid_weighted_cov`): var_θ to `cov_θθ`, var_t to half the
+    /// trace of the covariance of where the fit puts the centroid, `J cov Jᵀ` with
+    /// J = [∂(R·c)/∂θ | I].
+    pub fn widen_to_fit(&mut self, map_from_agent: &Isometry2<f64>, cov: &Matrix3<f64>) {
+        let rc = map_from_agent.rotation * self.centroid.coords;
+        let j = nalgebra::Matrix2x3::new(-rc.y, 1.0, 0.0, rc.x, 0.0, 1.0);
+        let at_centroid = j * cov * j.transpose();
+        self.var_theta = self.var_theta.max(cov[(0, 0)]);
+        self.var_t = self.var_t.max(0.5 * at_centroid.trace());
     }
 
     /// The same spread with every variance multiplied by `factor²`.
@@ -190,6 +204,25 @@ impl Prior {
     }
 }
 
+/// The pose uncertainty an anchor-window detection carries (`PriorSettings::anchor_pose_uncertainty`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum AnchorPose {
+    /// none: the pose counts as known (the filter's weighted mean)
+    #[value(alias = "false")]
+    Known,
+    /// the particles' covariance of (x, y, heading) at the detection. The particles see
+    /// the pose relative to their own maps: resampling on detections of transmitters that
+    /// were themselves placed from the drifting track narrows their heading spread below
+    /// the heading's error in the local frame (README, session 26)
+    #[value(alias = "true")]
+    Particles,
+    /// the dead-reckoning covariance since the first snapshot: the motion model's noise
+    /// (`heading_noise_*`, the speed's) propagated along the gyro and speed alone, an upper
+    /// bound on how far the pose can be off in the local frame whatever the detections say
+    Odometry,
+}
+
 /// How often and how the agent matches its map against the prior.
 #[derive(Debug, Clone)]
 pub struct PriorSettings {
@@ -234,13 +267,20 @@ pub struct PriorSettings {
     /// would then bias the points meant to correct it. The first attempt after the window
     /// closes refits the match to all of them. Default false
     pub hold_in_anchor_window: bool,
-    /// the anchor points carry the agent's pose uncertainty at each detection (the
-    /// particles' covariance of x, y and heading, the heading's lever arm being the range):
-    /// the detections of one transmitter are weighted by their total variance and its
-    /// point's covariance bounds the pose errors for any correlation between them (they
-    /// share the drift, so they do not average out); without it the pose counts as known
-    /// and the measurement noise averages down with every detection. Default false
-    pub anchor_pose_uncertainty: bool,
+    /// whether and how the anchor points carry the agent's pose uncertainty at each
+    /// detection (a covariance of x, y and heading, the heading's lever arm being the
+    /// range): the detections of one transmitter are weighted by their total variance and
+    /// its point's covariance bounds the pose errors for any correlation between them (they
+    /// share the drift, so they do not average out). Default `Known`: the pose counts as
+    /// known and the measurement noise averages down with every detection
+    pub anchor_pose_uncertainty: AnchorPose,
+    /// the transform's uncertainty is at least what the anchor points' covariances allow the
+    /// anchored fit to know (the inverse of its information, `fit_rigid_weighted_cov`), not
+    /// only what its residuals show: with `anchor_pose_uncertainty` the points carry the
+    /// heading drift of the window, and a transform fitted to drifted points is no better
+    /// known than they are. Enters through `transform_draws` or the prior's inflated
+    /// covariances. Default false
+    pub anchor_spread: bool,
     /// prior transmitters that correspond to one of the agent's own in the match are no
     /// candidates for new tracks. Default false: on 8 seeded three-agent runs and on a
     /// perfect map it changed the error by less than the run-to-run spread (README)
@@ -291,7 +331,8 @@ impl Default for PriorSettings {
             transform_draws: None,
             anchor_window_s: 0.0,
             hold_in_anchor_window: false,
-            anchor_pose_uncertainty: false,
+            anchor_pose_uncertainty: AnchorPose::Known,
+            anchor_spread: false,
             claim_matched: false,
             confirmations: 1,
             agree_rad: 0.1,
@@ -344,6 +385,9 @@ pub struct PriorTracker {
     t0: Option<f64>,
     /// per track, its detections inside the anchor window
     anchors: BTreeMap<u64, Vec<AnchorObs>>,
+    /// the dead-reckoning covariance of (x, y, heading) and the time it is for
+    /// (`AnchorPose::Odometry`)
+    dead_reckoning: (Matrix3<f64>, f64),
     /// the latest accepted transform that disagrees with the one in use, and how many
     /// consecutive accepted matches found them (see `PriorSettings::confirmations`)
     pending: Option<(Isometry2<f64>, usize)>,
@@ -373,6 +417,8 @@ type PointCov = (Point2<f64>, Matrix2<f64>);
 /// A transform refitted to anchor points: the points (agent frame) and their residuals.
 struct Anchored {
     map_from_agent: Isometry2<f64>,
+    /// covariance of (θ, t_x, t_y) of the fit from the points' covariances (`anchor_spread`)
+    fit_cov: Option<Matrix3<f64>>,
     points: Vec<Point2<f64>>,
     residuals_m: Vec<f64>,
 }
@@ -426,6 +472,7 @@ impl PriorTracker {
             spread: None,
             t0: None,
             anchors: BTreeMap::new(),
+            dead_reckoning: (Matrix3::zeros(), f64::NAN),
             pending: None,
             fused: BTreeSet::new(),
             events: Vec::new(),
@@ -446,7 +493,14 @@ impl PriorTracker {
             && self.settings.anchor_window_s > 0.0
             && t - t0 <= self.settings.anchor_window_s;
         if in_window {
-            let (pose, pose_cov) = pose_moments(filter);
+            let (pose, particles_cov) = pose_moments(filter);
+            let pose_cov = match self.settings.anchor_pose_uncertainty {
+                AnchorPose::Odometry => {
+                    self.propagate_dead_reckoning(filter.config(), snap, pose.z);
+                    self.dead_reckoning.0
+                }
+                _ => particles_cov,
+            };
             for m in &snap.components {
                 if let Some(aoa) = m.aoa {
                     let (sd, sa) = filter.config().noise.std(m.snr_db);
@@ -489,10 +543,11 @@ impl PriorTracker {
             None
         };
         let anchors = anchored.as_ref().map_or(0, |a| a.points.len());
-        let (fit, points, residuals) = match anchored {
-            Some(a) => (a.map_from_agent, a.points, a.residuals_m),
+        let (fit, fit_cov, points, residuals) = match anchored {
+            Some(a) => (a.map_from_agent, a.fit_cov, a.points, a.residuals_m),
             None => (
                 m.map_from_agent,
+                None,
                 m.correspondences
                     .iter()
                     .map(|&(u, _)| {
@@ -569,8 +624,11 @@ impl PriorTracker {
                 filter.release_prior_copies(|p| (back * p - p).norm());
             }
             self.current = Some(fit);
-            let unc =
+            let mut unc =
                 TransformUncertainty::from_fit(&points, &residuals, self.settings.residual_floor_m);
+            if let (Some(u), Some(c)) = (unc.as_mut(), fit_cov) {
+                u.widen_to_fit(&fit, &c);
+            }
             // either the particles draw the transform from its (dispersed) spread, or the
             // prior covariances are inflated by it
             self.spread = self
@@ -652,10 +710,48 @@ impl PriorTracker {
         Ok(())
     }
 
+    /// Advances the dead-reckoning covariance to `snap.t` (first call: zero, the initial pose
+    /// is known): heading variance σ_t²·Δt + σ_r²·|ω·Δt| per step as in the motion model,
+    /// the speed's variance (measured: σ_v², else the random walk's σ_v²·Δt) along the
+    /// heading, and the heading's variance carried into the position by the Jacobian of
+    /// x += v·Δt·(cos h, sin h) — `P ← F P Fᵀ + Q`.
+    fn propagate_dead_reckoning(&mut self, cfg: &FilterConfig, snap: &Snapshot, heading: f64) {
+        let (p, t_prev) = self.dead_reckoning;
+        let dt = snap.t - t_prev;
+        // the first snapshot (t_prev NaN) starts it at zero, the known initial pose
+        if dt.is_nan() || dt <= 0.0 {
+            self.dead_reckoning = (p, snap.t);
+            return;
+        }
+        let v = snap.speed.unwrap_or(0.0);
+        let var_v = if snap.speed.is_some() {
+            cfg.speed_measurement_std_mps.powi(2)
+        } else {
+            cfg.speed_noise_mps_per_sqrt_s.powi(2) * dt
+        };
+        let var_h = cfg.heading_noise_rad_per_sqrt_s.powi(2) * dt
+            + cfg.heading_noise_rad_per_sqrt_rad.powi(2) * (snap.gyro * dt).abs();
+        let u = Vector3::new(heading.cos(), heading.sin(), 0.0);
+        let f = Matrix3::new(
+            1.0,
+            0.0,
+            -v * dt * heading.sin(),
+            0.0,
+            1.0,
+            v * dt * heading.cos(),
+            0.0,
+            0.0,
+            1.0,
+        );
+        let mut q = u * u.transpose() * (var_v * dt * dt);
+        q[(2, 2)] += var_h;
+        self.dead_reckoning = (f * p * f.transpose() + q, snap.t);
+    }
+
     /// The point a track's anchor-window detections put a prior transmitter with clock offset
     /// `b` (variance `var_b`) at, and its covariance; None without a detection beyond `b`.
     /// Each detection gives `pose + (d − b)·(cos, sin)(heading + aoa)`. With the pose known
-    /// (`anchor_pose_uncertainty` off) the points are averaged and the covariance is
+    /// (`AnchorPose::Known`) the points are averaged and the covariance is
     /// σ_d²/n + var(b) along the ray and r²·σ_θ²/n across it. With it, detection i also
     /// carries its pose covariance P_i = J S_i Jᵀ (J = [I | r·(−sin, cos)ᵀ]); the points are
     /// averaged with weights a_i ∝ 1 / tr(M_i + P_i), and the covariance is
@@ -686,7 +782,7 @@ impl PriorTracker {
             .map(|o| Vector2::new(o.x, o.y))
             .sum::<Vector2<f64>>()
             / n;
-        if !self.settings.anchor_pose_uncertainty {
+        if self.settings.anchor_pose_uncertainty == AnchorPose::Known {
             let q = parts.iter().map(|(q, _, _)| q).sum::<Vector2<f64>>() / n;
             let dir = (q - from).try_normalize(1e-9)?;
             let perp = Vector2::new(-dir.y, dir.x);
@@ -764,8 +860,15 @@ impl PriorTracker {
                 break;
             }
         }
+        let fit_cov = if self.settings.anchor_spread {
+            let (from, to): (Vec<_>, Vec<_>) = pairs.iter().copied().unzip();
+            fit_rigid_weighted_cov(&from, &to, iso).map(|(_, c)| c)
+        } else {
+            None
+        };
         Some(Anchored {
             map_from_agent: iso,
+            fit_cov,
             points: pairs.iter().map(|((q, _), _)| *q).collect(),
             residuals_m: pairs
                 .iter()
@@ -798,7 +901,7 @@ mod tests {
         let (known, drifted) = (obs(0.0, 0.01), obs(0.2, 0.2));
         let truth = Vector2::new(10.0, 0.0);
         let empty = TransmitterMap::new(2.0, Vec::new()).unwrap();
-        let point = |pose_unc: bool| {
+        let point = |pose_unc: AnchorPose| {
             let settings = PriorSettings {
                 anchor_pose_uncertainty: pose_unc,
                 ..PriorSettings::default()
@@ -808,8 +911,8 @@ mod tests {
             let e = q.coords - truth;
             (e.norm(), e.dot(&c.cholesky().unwrap().solve(&e)).sqrt())
         };
-        let (err_off, maha_off) = point(false);
-        let (err_on, maha_on) = point(true);
+        let (err_off, maha_off) = point(AnchorPose::Known);
+        let (err_on, maha_on) = point(AnchorPose::Particles);
         println!(
             "error {err_off:.3} m ({maha_off:.2} σ) pose known, {err_on:.3} m ({maha_on:.2} σ) with its uncertainty"
         );
@@ -820,5 +923,92 @@ mod tests {
             err_on < err_off / 3.0 && maha_on < 1.0,
             "{err_on} {maha_on}"
         );
+    }
+
+    #[test]
+    fn the_dead_reckoning_covariance_grows_as_a_heading_random_walk_predicts() {
+        // Straight at v = 1 m/s along +x for T = 20 s, heading noise σ_t = 0.01 rad/√s, no
+        // turn and a noise-free speed: the heading variance is σ_t²·T and the cross-track
+        // variance the integral of v²·σ_t²·t, i.e. v²·σ_t²·T³/3; along the track only the
+        // speed's (zero) noise.
+        let cfg = FilterConfig {
+            heading_noise_rad_per_sqrt_s: 0.01,
+            heading_noise_rad_per_sqrt_rad: 0.3,
+            speed_measurement_std_mps: 0.0,
+            ..FilterConfig::default()
+        };
+        let empty = TransmitterMap::new(2.0, Vec::new()).unwrap();
+        let settings = PriorSettings {
+            anchor_pose_uncertainty: AnchorPose::Odometry,
+            ..PriorSettings::default()
+        };
+        let mut tracker = PriorTracker::new(empty, settings, 1).unwrap();
+        let dt = 0.01;
+        for k in 0..=2000 {
+            let snap = Snapshot {
+                t: k as f64 * dt,
+                gyro: 0.0,
+                speed: Some(1.0),
+                components: Vec::new(),
+                estimate: true,
+            };
+            tracker.propagate_dead_reckoning(&cfg, &snap, 0.0);
+        }
+        let p = tracker.dead_reckoning.0;
+        let (t, s2) = (20.0, 0.01f64.powi(2));
+        println!(
+            "var h {:.3e} y {:.4} x {:.1e}",
+            p[(2, 2)],
+            p[(1, 1)],
+            p[(0, 0)]
+        );
+        assert!((p[(2, 2)] / (s2 * t) - 1.0).abs() < 1e-9, "{}", p[(2, 2)]);
+        assert!(
+            (p[(1, 1)] / (s2 * t.powi(3) / 3.0) - 1.0).abs() < 0.01,
+            "{}",
+            p[(1, 1)]
+        );
+        assert!(p[(0, 0)] < 1e-12, "{}", p[(0, 0)]);
+        // a turn adds σ_r² per radian turned: a quarter turn in one second
+        let turn = Snapshot {
+            t: t + 1.0,
+            gyro: std::f64::consts::FRAC_PI_2,
+            speed: Some(0.0),
+            components: Vec::new(),
+            estimate: true,
+        };
+        tracker.propagate_dead_reckoning(&cfg, &turn, 0.0);
+        let added = tracker.dead_reckoning.0[(2, 2)] - p[(2, 2)];
+        let expected = s2 + 0.09 * std::f64::consts::FRAC_PI_2;
+        assert!((added / expected - 1.0).abs() < 1e-9, "{added} {expected}");
+    }
+
+    #[test]
+    fn the_transform_spread_is_widened_to_what_the_anchored_fit_knows() {
+        // three points 10–15 m apart with tiny residuals: the residual-based spread is the
+        // 0.3 m floor (σ_θ ≈ 0.02 rad); a fit whose rotation is known only to 0.1 rad (about
+        // the origin of the agent frame) moves the centroid by 0.1·|R c|, and both must show
+        let pts = [
+            Point2::new(0.0, 0.0),
+            Point2::new(20.0, 0.0),
+            Point2::new(10.0, 15.0),
+        ];
+        let mut u = TransformUncertainty::from_fit(&pts, &[0.01; 3], 0.3).unwrap();
+        let before = u;
+        let fit = Isometry2::new(Vector2::new(5.0, 5.0), 0.4);
+        let cov = Matrix3::from_diagonal(&Vector3::new(0.01, 1e-6, 1e-6));
+        u.widen_to_fit(&fit, &cov);
+        let lever = (fit.rotation * u.centroid.coords).norm();
+        assert!((u.var_theta - 0.01).abs() < 1e-12, "{}", u.var_theta);
+        assert!(
+            (u.var_t - (0.01 * lever * lever + 2e-6) / 2.0).abs() < 1e-9,
+            "{} {lever}",
+            u.var_t
+        );
+        assert!(u.var_theta > before.var_theta && u.var_t > before.var_t);
+        // a fit that knows more than the residuals show changes nothing
+        let mut v = before;
+        v.widen_to_fit(&fit, &(cov * 1e-6));
+        assert_eq!(v, before);
     }
 }
