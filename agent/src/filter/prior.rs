@@ -23,7 +23,7 @@ use echomap_shared::{Beta, HexCell, HexGrid};
 use nalgebra::{Isometry2, Matrix2, Matrix3, Point2, Vector2, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use std::collections::{BTreeMap, BTreeSet};
 use std::ops::AddAssign;
 
@@ -205,8 +205,7 @@ impl Prior {
 }
 
 /// The pose uncertainty an anchor-window detection carries (`PriorSettings::anchor_pose_uncertainty`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum AnchorPose {
     /// none: the pose counts as known (the filter's weighted mean)
     #[value(alias = "false")]
