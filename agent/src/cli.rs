@@ -280,7 +280,9 @@ pub struct RunArgs {
     /// average out over a transmitter's detections: `known` (default; alias `false`) — none,
     /// the pose counts as known; `particles` (alias `true`) — the particles' spread of
     /// position and heading; `odometry` — the dead-reckoning covariance since the start
-    /// (the motion model's noise along the gyro and speed alone)
+    /// (the motion model's noise along the gyro and speed alone); `odometry-correlated` —
+    /// that, with the points' errors correlated through the one dead reckoning and the
+    /// transform fitted to their joint covariance (generalized least squares)
     #[arg(long, value_enum, default_value_t = crate::filter::PriorSettings::default().anchor_pose_uncertainty)]
     pub prior_anchor_pose: crate::filter::AnchorPose,
     /// `true`: the transform's uncertainty (what `--transform-draws` draws from, or what

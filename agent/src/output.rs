@@ -128,11 +128,12 @@ pub fn write_run(
     std::fs::write(dir.join("map.json"), out.map.to_json_pretty())?;
     std::fs::write(dir.join("track.csv"), track_csv(&out.rows))?;
     if out.had_prior {
-        let mut s =
-            String::from("t,accepted,inliers,angle_rad,tx,ty,action,anchors,fused,reason\n");
+        let mut s = String::from(
+            "t,accepted,inliers,angle_rad,tx,ty,action,anchors,match_angle_rad,fused,reason\n",
+        );
         for m in &out.matches {
             s.push_str(&format!(
-                "{},{},{},{},{},{},{},{},{:.2},\"{}\"\n",
+                "{},{},{},{},{},{},{},{},{},{:.2},\"{}\"\n",
                 m.t,
                 m.accepted,
                 m.inliers,
@@ -141,6 +142,7 @@ pub fn write_run(
                 m.ty,
                 m.action,
                 m.anchors,
+                m.match_angle_rad,
                 m.fused,
                 m.reason.replace('"', "'")
             ));

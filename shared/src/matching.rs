@@ -279,6 +279,72 @@ pub fn fit_rigid_weighted_cov(
     Some((iso, cov))
 }
 
+/// [`fit_rigid_weighted_cov`] when the errors of the `from` points are correlated: the
+/// maximum-likelihood rigid transform for a joint Gaussian error of the stacked `from` points
+/// with covariance `cov_from` (2n × 2n, x and y of point i at rows 2i and 2i + 1) and
+/// independent errors `cov_to[i]` of the `to` points. Generalized least squares by
+/// Gauss–Newton on (θ, t) from `init`, `cov_from` re-rotated every iteration; returns the
+/// transform and the inverse of its information. With a block-diagonal `cov_from` it is
+/// [`fit_rigid_weighted_cov`]. What the correlation is for: points placed from one robot's
+/// dead-reckoned poses share that dead reckoning's drift, which does not average out over
+/// them and cannot be told from the transform's own rotation — the generalized fit gives the
+/// shared part its due weight once instead of once per point. None when the joint covariance
+/// or the normal equations are singular or the sizes disagree.
+pub fn fit_rigid_correlated(
+    from: &[Point2<f64>],
+    cov_from: &nalgebra::DMatrix<f64>,
+    to: &[(Point2<f64>, Matrix2<f64>)],
+    init: Isometry2<f64>,
+) -> Option<(Isometry2<f64>, Matrix3<f64>)> {
+    let n = from.len();
+    if n < 2 || to.len() != n || cov_from.shape() != (2 * n, 2 * n) {
+        return None;
+    }
+    let normal = |angle: f64, t: Vector2<f64>| -> Option<(Matrix3<f64>, Vector3<f64>)> {
+        let rot = nalgebra::Rotation2::new(angle).into_inner();
+        let mut sigma = cov_from.clone();
+        let mut jac = nalgebra::DMatrix::<f64>::zeros(2 * n, 3);
+        let mut r = nalgebra::DVector::<f64>::zeros(2 * n);
+        for i in 0..n {
+            for j in 0..n {
+                let block = rot * sigma.fixed_view::<2, 2>(2 * i, 2 * j) * rot.transpose();
+                sigma.fixed_view_mut::<2, 2>(2 * i, 2 * j).copy_from(&block);
+            }
+            let c = sigma.fixed_view::<2, 2>(2 * i, 2 * i) + to[i].1;
+            sigma.fixed_view_mut::<2, 2>(2 * i, 2 * i).copy_from(&c);
+            let q = rot * from[i].coords;
+            let ri = to[i].0.coords - q - t;
+            r.fixed_rows_mut::<2>(2 * i).copy_from(&ri);
+            // ∂r/∂θ = −(d/dθ R)·from = −(−q_y, q_x); ∂r/∂t = −I
+            jac.fixed_view_mut::<2, 3>(2 * i, 0)
+                .copy_from(&nalgebra::Matrix2x3::new(q.y, -1.0, 0.0, -q.x, 0.0, -1.0));
+        }
+        let ch = sigma.cholesky()?;
+        let wj = ch.solve(&jac);
+        let h = jac.transpose() * &wj;
+        let g = wj.transpose() * r;
+        Some((
+            Matrix3::from_iterator(h.iter().copied()),
+            Vector3::new(g[0], g[1], g[2]),
+        ))
+    };
+    let (mut angle, mut t) = (init.rotation.angle(), init.translation.vector);
+    for _ in 0..20 {
+        let (h, g) = normal(angle, t)?;
+        let step = h.cholesky()?.solve(&(-g));
+        angle += step[0];
+        t += Vector2::new(step[1], step[2]);
+        if step.norm() < 1e-12 {
+            break;
+        }
+    }
+    if !(angle.is_finite() && t.iter().all(|v| v.is_finite())) {
+        return None;
+    }
+    let cov = normal(angle, t)?.0.cholesky()?.inverse();
+    Some((Isometry2::new(t, angle), cov))
+}
+
 /// The Gauss–Newton iteration of [`fit_rigid_weighted`]; also returns its normal equations
 /// (information matrix and gradient at a given θ, t).
 #[allow(clippy::type_complexity)]

@@ -4,7 +4,8 @@
 
 use echomap_shared::map::{Beta, Transmitter, TransmitterMap};
 use echomap_shared::matching::{
-    MatchConfig, fit_rigid, fit_rigid_weighted, fit_rigid_weighted_cov, match_maps,
+    MatchConfig, fit_rigid, fit_rigid_correlated, fit_rigid_weighted, fit_rigid_weighted_cov,
+    match_maps,
 };
 use echomap_shared::merging::{MergeConfig, merge_maps};
 use echomap_shared::mixture::Component;
@@ -790,6 +791,119 @@ fn the_weighted_fits_covariance_is_the_spread_of_its_estimates() {
     assert!(
         (mean.x - 0.7).abs() < 3.0 * (rep[(0, 0)] / n).sqrt() + 1e-3,
         "{mean}"
+    );
+}
+
+/// Points placed from one dead-reckoned walk share its heading drift, a random walk: point k
+/// moves by δh_k·(its lever arm, turned a quarter), δh_k the sum of the first k + 1 heading
+/// steps. The generalized fit with the points' joint covariance reports the spread of its
+/// estimates and estimates the rotation better than the fit that takes each point's marginal
+/// covariance for independent — which also claims to know it better than it does. With the
+/// joint covariance block-diagonal the two fits are the same.
+#[test]
+fn the_correlated_fit_gives_a_shared_drift_its_due() {
+    let mut rng = ChaCha8Rng::seed_from_u64(47);
+    let truth = Isometry2::new(Vector2::new(-1.0, 2.0), -0.4);
+    let n = 8;
+    let (step_var, meas_var) = (0.03f64.powi(2), 0.05f64.powi(2));
+    let mut pts = Vec::new();
+    let mut levers = Vec::new();
+    for k in 0..n {
+        let pose = Vector2::new(k as f64, 0.3 * k as f64);
+        let (r, phi) = (
+            4.0 + 2.0 * rng.random::<f64>(),
+            rng.random::<f64>() * std::f64::consts::TAU,
+        );
+        let arm = Vector2::new(phi.cos(), phi.sin()) * r;
+        pts.push(Point2::from(pose + arm));
+        levers.push(Vector2::new(-arm.y, arm.x));
+    }
+    let mut joint = nalgebra::DMatrix::<f64>::zeros(2 * n, 2 * n);
+    for k in 0..n {
+        for l in 0..n {
+            let mut c = levers[k] * levers[l].transpose() * (step_var * (k.min(l) + 1) as f64);
+            if k == l {
+                c += Matrix2::identity() * meas_var;
+            }
+            joint.fixed_view_mut::<2, 2>(2 * k, 2 * l).copy_from(&c);
+        }
+    }
+    let marginal: Vec<Matrix2<f64>> = (0..n)
+        .map(|k| joint.fixed_view::<2, 2>(2 * k, 2 * k).into_owned())
+        .collect();
+    let mut diagonal = nalgebra::DMatrix::<f64>::zeros(2 * n, 2 * n);
+    for (k, c) in marginal.iter().enumerate() {
+        diagonal.fixed_view_mut::<2, 2>(2 * k, 2 * k).copy_from(c);
+    }
+    let to: Vec<(Point2<f64>, Matrix2<f64>)> = pts
+        .iter()
+        .map(|p| (truth * p, Matrix2::identity() * 0.02f64.powi(2)))
+        .collect();
+    let l = joint.clone().cholesky().unwrap().l();
+    let (mut gls, mut independent, mut reported) = (Vec::new(), Vec::new(), Vec::new());
+    let mut reported_independent = 0.0;
+    for trial in 0..2000 {
+        let z = nalgebra::DVector::from_fn(2 * n, |_, _| gauss(&mut rng));
+        let e = &l * z;
+        let from: Vec<Point2<f64>> = (0..n)
+            .map(|k| pts[k] + Vector2::new(e[2 * k], e[2 * k + 1]))
+            .collect();
+        let (iso, cov) = fit_rigid_correlated(&from, &joint, &to, Isometry2::identity()).unwrap();
+        let with_marginals: Vec<(Point2<f64>, Matrix2<f64>)> =
+            from.iter().copied().zip(marginal.iter().copied()).collect();
+        let (ind, ind_cov) =
+            fit_rigid_weighted_cov(&with_marginals, &to, Isometry2::identity()).unwrap();
+        if trial == 0 {
+            let (same, same_cov) =
+                fit_rigid_correlated(&from, &diagonal, &to, Isometry2::identity()).unwrap();
+            assert!(
+                (same.rotation.angle() - ind.rotation.angle()).abs() < 1e-9
+                    && (same.translation.vector - ind.translation.vector).norm() < 1e-9
+                    && (same_cov - ind_cov).norm() < 1e-9 * ind_cov.norm(),
+                "block-diagonal: {same} vs {ind}"
+            );
+        }
+        let v =
+            |i: &Isometry2<f64>| Vector3::new(i.rotation.angle(), i.translation.x, i.translation.y);
+        gls.push(v(&iso));
+        independent.push(v(&ind));
+        reported.push(cov);
+        reported_independent += ind_cov[(0, 0)] / 2000.0;
+    }
+    let spread = |est: &[Vector3<f64>]| {
+        let m = est.iter().sum::<Vector3<f64>>() / est.len() as f64;
+        est.iter()
+            .map(|e| (e - m) * (e - m).transpose())
+            .sum::<Matrix3<f64>>()
+            / (est.len() as f64 - 1.0)
+    };
+    let (emp, emp_ind) = (spread(&gls), spread(&independent));
+    let rep = reported.iter().sum::<Matrix3<f64>>() / reported.len() as f64;
+    println!(
+        "var θ: generalized {:.3e} (reported {:.3e}), independent {:.3e} (reported {:.3e})",
+        emp[(0, 0)],
+        rep[(0, 0)],
+        emp_ind[(0, 0)],
+        reported_independent
+    );
+    for k in 0..3 {
+        let ratio = emp[(k, k)] / rep[(k, k)];
+        assert!(
+            (ratio - 1.0).abs() < 0.1,
+            "variance {k}: empirical/reported {ratio:.3}"
+        );
+    }
+    assert!(
+        emp[(0, 0)] < 0.8 * emp_ind[(0, 0)],
+        "the generalized fit's rotation is no better: {:.3e} vs {:.3e}",
+        emp[(0, 0)],
+        emp_ind[(0, 0)]
+    );
+    assert!(
+        emp_ind[(0, 0)] > 1.2 * reported_independent,
+        "the independent fit knows its rotation as well as it says: {:.3e} vs {:.3e}",
+        emp_ind[(0, 0)],
+        reported_independent
     );
 }
 

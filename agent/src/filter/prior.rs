@@ -16,8 +16,8 @@ use anyhow::Result;
 use echomap_shared::log::Snapshot;
 use echomap_shared::map::TransmitterMap;
 use echomap_shared::matching::{
-    LocationScore, MatchConfig, MatchResult, fit_rigid_weighted, fit_rigid_weighted_cov,
-    match_maps, score_transform,
+    LocationScore, MatchConfig, MatchResult, fit_rigid_correlated, fit_rigid_weighted,
+    fit_rigid_weighted_cov, match_maps, score_transform,
 };
 use echomap_shared::{Beta, HexCell, HexGrid};
 use nalgebra::{Isometry2, Matrix2, Matrix3, Point2, Vector2, Vector3};
@@ -220,6 +220,15 @@ pub enum AnchorPose {
     /// (`heading_noise_*`, the speed's) propagated along the gyro and speed alone, an upper
     /// bound on how far the pose can be off in the local frame whatever the detections say
     Odometry,
+    /// `Odometry`, and the anchor points' errors correlated as the one dead reckoning makes
+    /// them: detection j after detection i shares i's pose error carried forward,
+    /// Cov(e_j, e_i) = Φ P_i with Φ = [[1, 0, −Δy], [0, 1, Δx], [0, 0, 1]] (Δ the walk
+    /// between them: a heading error at i turns every later step). The anchored transform
+    /// is then the generalized least-squares fit to the points' joint covariance
+    /// (`fit_rigid_correlated`), which weighs the drift they share once — the earliest
+    /// detections, made while the heading was still near the known start, decide the
+    /// rotation — where `Odometry` counts it once per point
+    OdometryCorrelated,
 }
 
 /// How often and how the agent matches its map against the prior.
@@ -361,6 +370,8 @@ pub struct MatchEvent {
     pub action: &'static str,
     /// anchor points the accepted transform was refitted to (0: the match's own fit)
     pub anchors: usize,
+    /// rotation of the match's own fit, before any refit to anchor points
+    pub match_angle_rad: f64,
     /// particle-weighted number of own transmitters the crowd's estimate was fused into
     /// (`PriorSettings::fuse_matched`)
     pub fused: f64,
@@ -399,6 +410,7 @@ pub struct PriorTracker {
 /// particles' covariance of (x, y, heading) around it.
 #[derive(Debug, Clone, Copy)]
 struct AnchorObs {
+    t: f64,
     x: f64,
     y: f64,
     heading: f64,
@@ -412,6 +424,67 @@ struct AnchorObs {
 
 /// A position with its covariance.
 type PointCov = (Point2<f64>, Matrix2<f64>);
+
+/// An anchor point: where a track's anchor-window detections put a prior transmitter, with
+/// its marginal covariance; the part of it no other point shares (measurement noise, the
+/// clock offset); and, per detection, how the pose error then moves the point.
+struct AnchorPoint {
+    point: PointCov,
+    independent: Matrix2<f64>,
+    loads: Vec<Load>,
+}
+
+/// One detection's share in an anchor point: the point moves by `arm · e` for a pose error e
+/// of (x, y, heading) at time `t`, when the dead-reckoned pose was `at` with covariance
+/// `pose_cov`.
+struct Load {
+    t: f64,
+    at: Vector2<f64>,
+    arm: nalgebra::Matrix2x3<f64>,
+    pose_cov: Matrix3<f64>,
+}
+
+/// Covariance of the pose errors of two dead-reckoned poses: the later one carries the
+/// earlier one's error forward, a heading error turning every step walked since,
+/// Cov(e_later, e_earlier) = Φ P_earlier with Φ = [[1, 0, −Δy], [0, 1, Δx], [0, 0, 1]].
+fn pose_cross_cov(a: &Load, b: &Load) -> Matrix3<f64> {
+    let phi = |from: &Load, to: &Load| {
+        let d = to.at - from.at;
+        Matrix3::new(1.0, 0.0, -d.y, 0.0, 1.0, d.x, 0.0, 0.0, 1.0)
+    };
+    if a.t <= b.t {
+        // Cov(e_a, e_b) = Cov(e_b, e_a)ᵀ = (Φ P_a)ᵀ
+        (phi(a, b) * a.pose_cov).transpose()
+    } else {
+        phi(b, a) * b.pose_cov
+    }
+}
+
+/// The joint covariance (2n × 2n) of anchor points placed from one dead-reckoned walk
+/// (`AnchorPose::OdometryCorrelated`): Σᵢ Σⱼ arm_i Cov(e_i, e_j) arm_jᵀ over the detections
+/// of the two points, plus each point's independent part on its own block.
+fn joint_covariance(points: &[AnchorPoint]) -> nalgebra::DMatrix<f64> {
+    let n = points.len();
+    let mut joint = nalgebra::DMatrix::<f64>::zeros(2 * n, 2 * n);
+    for k in 0..n {
+        for l in k..n {
+            let mut block = Matrix2::zeros();
+            for a in &points[k].loads {
+                for b in &points[l].loads {
+                    block += a.arm * pose_cross_cov(a, b) * b.arm.transpose();
+                }
+            }
+            if k == l {
+                block = (block + block.transpose()) * 0.5 + points[k].independent;
+            }
+            joint.fixed_view_mut::<2, 2>(2 * k, 2 * l).copy_from(&block);
+            joint
+                .fixed_view_mut::<2, 2>(2 * l, 2 * k)
+                .copy_from(&block.transpose());
+        }
+    }
+    joint
+}
 
 /// A transform refitted to anchor points: the points (agent frame) and their residuals.
 struct Anchored {
@@ -494,7 +567,7 @@ impl PriorTracker {
         if in_window {
             let (pose, particles_cov) = pose_moments(filter);
             let pose_cov = match self.settings.anchor_pose_uncertainty {
-                AnchorPose::Odometry => {
+                AnchorPose::Odometry | AnchorPose::OdometryCorrelated => {
                     self.propagate_dead_reckoning(filter.config(), snap, pose.z);
                     self.dead_reckoning.0
                 }
@@ -504,6 +577,7 @@ impl PriorTracker {
                 if let Some(aoa) = m.aoa {
                     let (sd, sa) = filter.config().noise.std(m.snr_db);
                     self.anchors.entry(m.track).or_default().push(AnchorObs {
+                        t,
                         x: pose.x,
                         y: pose.y,
                         heading: pose.z,
@@ -703,6 +777,7 @@ impl PriorTracker {
             ty: a.translation.y,
             action,
             anchors,
+            match_angle_rad: m.map_from_agent.rotation.angle(),
             fused,
             reason: m.reason.unwrap_or_default(),
         });
@@ -757,7 +832,7 @@ impl PriorTracker {
     /// Σ a_i² M_i + Σ a_i P_i + var(b) along the ray: measurement noise M_i independent, the
     /// pose part bounded for any correlation (Cov(Σ a_i e_i) ⪯ Σ a_i Cov(e_i), a_i ≥ 0
     /// summing to one).
-    fn anchor_point(&self, obs: &[AnchorObs], b: f64, var_b: f64) -> Option<PointCov> {
+    fn anchor_point(&self, obs: &[AnchorObs], b: f64, var_b: f64) -> Option<AnchorPoint> {
         let obs: Vec<&AnchorObs> = obs.iter().filter(|o| o.d - b > 0.0).collect();
         if obs.is_empty() {
             return None;
@@ -790,7 +865,11 @@ impl PriorTracker {
             let r = obs.iter().map(|o| o.d - b).sum::<f64>() / n;
             let c = dir * dir.transpose() * (sd2 / (n * n) + var_b)
                 + perp * perp.transpose() * (r * r * sa2 / (n * n));
-            return Some((Point2::from(q), c));
+            return Some(AnchorPoint {
+                point: (Point2::from(q), c),
+                independent: c,
+                loads: Vec::new(),
+            });
         }
         let inv: Vec<f64> = parts
             .iter()
@@ -799,14 +878,30 @@ impl PriorTracker {
         let total: f64 = inv.iter().sum();
         let mut q = Vector2::zeros();
         let mut c = Matrix2::zeros();
-        for ((qi, m, p), w) in parts.iter().zip(&inv) {
+        let mut independent = Matrix2::zeros();
+        let mut loads = Vec::with_capacity(obs.len());
+        for (((qi, m, p), w), o) in parts.iter().zip(&inv).zip(&obs) {
             let a = w / total;
             q += qi * a;
             c += m * (a * a) + p * a;
+            independent += m * (a * a);
+            let (r, phi) = (o.d - b, o.heading + o.aoa);
+            let j = nalgebra::Matrix2x3::new(1.0, 0.0, -r * phi.sin(), 0.0, 1.0, r * phi.cos());
+            loads.push(Load {
+                t: o.t,
+                at: Vector2::new(o.x, o.y),
+                arm: j * a,
+                pose_cov: o.pose_cov,
+            });
         }
         let dir = (q - from).try_normalize(1e-9)?;
         c += dir * dir.transpose() * var_b;
-        Some((Point2::from(q), c))
+        independent += dir * dir.transpose() * var_b;
+        Some(AnchorPoint {
+            point: (Point2::from(q), c),
+            independent,
+            loads,
+        })
     }
 
     /// Refits the match's transform to the anchor points of its correspondences: for every
@@ -819,6 +914,7 @@ impl PriorTracker {
     fn anchor(&self, user: &TransmitterMap, m: &MatchResult) -> Option<Anchored> {
         let floor = Matrix2::identity() * self.settings.position_floor_m.powi(2);
         let mut pairs: Vec<(PointCov, PointCov)> = Vec::new();
+        let mut points: Vec<AnchorPoint> = Vec::new();
         for &(u, j) in &m.correspondences {
             let Some(obs) = track_of(&user.transmitters()[u].id).and_then(|k| self.anchors.get(&k))
             else {
@@ -826,17 +922,26 @@ impl PriorTracker {
             };
             let (mean, cov) = self.map.transmitters()[j].moments();
             let (b, var_b) = (mean.z.max(0.0), cov[(2, 2)].max(0.0));
-            let Some((q, c)) = self.anchor_point(obs, b, var_b) else {
+            let Some(point) = self.anchor_point(obs, b, var_b) else {
                 continue;
             };
             pairs.push((
-                (Point2::from(q), c),
+                point.point,
                 (
                     Point2::new(mean.x, mean.y),
                     cov.fixed_view::<2, 2>(0, 0).into_owned() + floor,
                 ),
             ));
+            points.push(point);
         }
+        // a pair's squared Mahalanobis residual under a transform (None: singular)
+        let d2 = |iso: &Isometry2<f64>, ((q, cq), (p, cp)): &(PointCov, PointCov)| {
+            let rot = iso.rotation.to_rotation_matrix().into_inner();
+            let r = p - iso * q;
+            (rot * cq * rot.transpose() + cp)
+                .cholesky()
+                .map(|ch| r.dot(&ch.solve(&r)))
+        };
         // every pass that changes anything drops a pair, so this ends
         let mut iso = m.map_from_agent;
         loop {
@@ -845,21 +950,33 @@ impl PriorTracker {
             }
             let (from, to): (Vec<_>, Vec<_>) = pairs.iter().copied().unzip();
             iso = fit_rigid_weighted(&from, &to, iso)?;
-            let rot = iso.rotation.to_rotation_matrix().into_inner();
-            let before = pairs.len();
-            pairs.retain(|((q, cq), (p, cp))| {
-                let r = p - iso * q;
-                (rot * cq * rot.transpose() + cp)
-                    .cholesky()
-                    .is_some_and(|ch| {
-                        r.dot(&ch.solve(&r)) <= self.settings.matching.inlier_gate_chi2
-                    })
-            });
-            if pairs.len() == before {
+            let keep: Vec<bool> = pairs
+                .iter()
+                .map(|pair| {
+                    d2(&iso, pair).is_some_and(|d| d <= self.settings.matching.inlier_gate_chi2)
+                })
+                .collect();
+            if keep.iter().all(|&k| k) {
                 break;
             }
+            let mut flags = keep.iter();
+            pairs.retain(|_| *flags.next().unwrap_or(&false));
+            let mut flags = keep.iter();
+            points.retain(|_| *flags.next().unwrap_or(&false));
         }
-        let fit_cov = if self.settings.anchor_spread {
+        // the points' joint covariance and the generalized fit to it (gated on the marginals)
+        let mut correlated_cov = None;
+        if self.settings.anchor_pose_uncertainty == AnchorPose::OdometryCorrelated {
+            let joint = joint_covariance(&points);
+            let from: Vec<Point2<f64>> = pairs.iter().map(|((q, _), _)| *q).collect();
+            let to: Vec<PointCov> = pairs.iter().map(|(_, p)| *p).collect();
+            let (fit, cov) = fit_rigid_correlated(&from, &joint, &to, iso)?;
+            iso = fit;
+            correlated_cov = Some(cov);
+        }
+        let fit_cov = if correlated_cov.is_some() {
+            correlated_cov.filter(|_| self.settings.anchor_spread)
+        } else if self.settings.anchor_spread {
             let (from, to): (Vec<_>, Vec<_>) = pairs.iter().copied().unzip();
             fit_rigid_weighted_cov(&from, &to, iso).map(|(_, c)| c)
         } else {
@@ -880,6 +997,7 @@ impl PriorTracker {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rand::RngExt;
 
     #[test]
     fn the_anchor_point_trusts_a_detection_less_when_the_pose_was_uncertain() {
@@ -888,6 +1006,7 @@ mod tests {
         // 0.2 rad and its particles spread by as much. The measured angle of arrival is the
         // true one both times, so the second detection lands 2 m off to the side.
         let obs = |heading: f64, heading_std: f64| AnchorObs {
+            t: 0.0,
             x: 0.0,
             y: 0.0,
             heading,
@@ -906,7 +1025,10 @@ mod tests {
                 ..PriorSettings::default()
             };
             let tracker = PriorTracker::new(empty.clone(), settings, 1).unwrap();
-            let (q, c) = tracker.anchor_point(&[known, drifted], 0.0, 0.0).unwrap();
+            let (q, c) = tracker
+                .anchor_point(&[known, drifted], 0.0, 0.0)
+                .unwrap()
+                .point;
             let e = q.coords - truth;
             (e.norm(), e.dot(&c.cholesky().unwrap().solve(&e)).sqrt())
         };
@@ -980,6 +1102,113 @@ mod tests {
         let added = tracker.dead_reckoning.0[(2, 2)] - p[(2, 2)];
         let expected = s2 + 0.09 * std::f64::consts::FRAC_PI_2;
         assert!((added / expected - 1.0).abs() < 1e-9, "{added} {expected}");
+    }
+
+    #[test]
+    fn later_dead_reckoned_poses_carry_the_earlier_error_forward() {
+        // Monte-Carlo dead reckoning (heading noise only, σ_t = 0.005 rad/√s, small enough
+        // for the first-order model): 10 s straight along +x at 1 m/s, then 10 s on a circle
+        // at 0.1 rad/s. The empirical covariance of the pose errors at 6 s and 16 s is what
+        // `pose_cross_cov` gives from the tracker's propagated covariance at 6 s and the walk
+        // between — either way round.
+        let sigma = 0.005;
+        let cfg = FilterConfig {
+            heading_noise_rad_per_sqrt_s: sigma,
+            heading_noise_rad_per_sqrt_rad: 0.0,
+            speed_measurement_std_mps: 0.0,
+            ..FilterConfig::default()
+        };
+        let (dt, steps) = (0.05, 400);
+        let gyro = |k: usize| if k * 2 < steps { 0.0 } else { 0.1 };
+        let (i, j) = (120, 320);
+        let empty = TransmitterMap::new(2.0, Vec::new()).unwrap();
+        let settings = PriorSettings {
+            anchor_pose_uncertainty: AnchorPose::Odometry,
+            ..PriorSettings::default()
+        };
+        let mut tracker = PriorTracker::new(empty, settings, 1).unwrap();
+        let (mut h, mut at) = (0.0f64, Vector2::<f64>::zeros());
+        let mut loads = Vec::new();
+        for k in 0..=steps {
+            if k > 0 {
+                h += gyro(k) * dt;
+                at += Vector2::new(h.cos(), h.sin()) * dt;
+            }
+            let snap = Snapshot {
+                t: k as f64 * dt,
+                gyro: gyro(k),
+                speed: Some(1.0),
+                components: Vec::new(),
+                estimate: true,
+            };
+            tracker.propagate_dead_reckoning(&cfg, &snap, h);
+            if k == i || k == j {
+                loads.push(Load {
+                    t: snap.t,
+                    at,
+                    arm: nalgebra::Matrix2x3::zeros(),
+                    pose_cov: tracker.dead_reckoning.0,
+                });
+            }
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut gauss = move || {
+            let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
+            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+        };
+        let draws = 4000;
+        let (mut sum_i, mut sum_j, mut prod) =
+            (Vector3::zeros(), Vector3::zeros(), Matrix3::zeros());
+        let (mut sq_i, mut sq_j) = (Vector3::<f64>::zeros(), Vector3::<f64>::zeros());
+        for _ in 0..draws {
+            // the dead-reckoned walk with a heading random walk, less the true one
+            let (mut h, mut dh) = (0.0f64, 0.0);
+            let (mut err, mut at_i, mut at_j) = (
+                Vector3::<f64>::zeros(),
+                Vector3::<f64>::zeros(),
+                Vector3::zeros(),
+            );
+            for k in 1..=steps {
+                dh += sigma * dt.sqrt() * gauss();
+                h += gyro(k) * dt;
+                err.x += ((h + dh).cos() - h.cos()) * dt;
+                err.y += ((h + dh).sin() - h.sin()) * dt;
+                err.z = dh;
+                if k == i {
+                    at_i = err;
+                }
+                if k == j {
+                    at_j = err;
+                }
+            }
+            sum_i += at_i;
+            sum_j += at_j;
+            sq_i += at_i.component_mul(&at_i);
+            sq_j += at_j.component_mul(&at_j);
+            prod += at_j * at_i.transpose();
+        }
+        let n = draws as f64;
+        let emp = (prod - sum_j * sum_i.transpose() / n) / (n - 1.0);
+        let var_i = (sq_i - sum_i.component_mul(&sum_i) / n) / (n - 1.0);
+        let var_j = (sq_j - sum_j.component_mul(&sum_j) / n) / (n - 1.0);
+        let model = pose_cross_cov(&loads[1], &loads[0]);
+        let swapped = pose_cross_cov(&loads[0], &loads[1]);
+        println!("empirical {emp:.3e} model {model:.3e}");
+        assert!((swapped - model.transpose()).norm() < 1e-15);
+        for r in 0..3 {
+            for c in 0..3 {
+                // 5 % of the scale (the two errors' empirical stds) plus four Monte-Carlo
+                // standard errors
+                let scale = (var_j[r] * var_i[c]).sqrt();
+                let tol = 0.05 * scale + 4.0 * scale / n.sqrt() + 1e-12;
+                assert!(
+                    (emp[(r, c)] - model[(r, c)]).abs() < tol,
+                    "({r}, {c}): empirical {:.3e}, model {:.3e}",
+                    emp[(r, c)],
+                    model[(r, c)]
+                );
+            }
+        }
     }
 
     #[test]
