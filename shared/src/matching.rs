@@ -328,6 +328,21 @@ pub fn fit_rigid_correlated(
             Vector3::new(g[0], g[1], g[2]),
         ))
     };
+    let iso = gauss_newton(init, normal)?;
+    let cov = normal(iso.rotation.angle(), iso.translation.vector)?
+        .0
+        .cholesky()?
+        .inverse();
+    Some((iso, cov))
+}
+
+/// Gauss–Newton on (θ, t) from `init` with the normal equations `normal(θ, t)` = (information,
+/// gradient): at most 20 steps, until a step is below 1e-12. None when the information is not
+/// positive definite or the result not finite.
+fn gauss_newton(
+    init: Isometry2<f64>,
+    normal: impl Fn(f64, Vector2<f64>) -> Option<(Matrix3<f64>, Vector3<f64>)>,
+) -> Option<Isometry2<f64>> {
     let (mut angle, mut t) = (init.rotation.angle(), init.translation.vector);
     for _ in 0..20 {
         let (h, g) = normal(angle, t)?;
@@ -338,11 +353,7 @@ pub fn fit_rigid_correlated(
             break;
         }
     }
-    if !(angle.is_finite() && t.iter().all(|v| v.is_finite())) {
-        return None;
-    }
-    let cov = normal(angle, t)?.0.cholesky()?.inverse();
-    Some((Isometry2::new(t, angle), cov))
+    (angle.is_finite() && t.iter().all(|v| v.is_finite())).then(|| Isometry2::new(t, angle))
 }
 
 /// The Gauss–Newton iteration of [`fit_rigid_weighted`]; also returns its normal equations
@@ -373,18 +384,7 @@ fn weighted_gauss_newton<'a>(
         }
         Some((h, g))
     };
-    let (mut angle, mut t) = (init.rotation.angle(), init.translation.vector);
-    for _ in 0..20 {
-        let (h, g) = normal(angle, t)?;
-        let step = h.cholesky()?.solve(&(-g));
-        angle += step[0];
-        t += Vector2::new(step[1], step[2]);
-        if step.norm() < 1e-12 {
-            break;
-        }
-    }
-    (angle.is_finite() && t.iter().all(|v| v.is_finite()))
-        .then(|| (Isometry2::new(t, angle), normal))
+    gauss_newton(init, normal).map(|iso| (iso, normal))
 }
 
 /// Uniform grid over the prior candidates' bounding box for radius queries, stored as
