@@ -838,7 +838,9 @@ impl PriorTracker {
             return None;
         }
         let n = obs.len() as f64;
-        let parts: Vec<(Vector2<f64>, Matrix2<f64>, Matrix2<f64>)> = obs
+        // per detection: the point, its measurement covariance, its pose covariance and the
+        // pose error's lever J
+        let parts: Vec<_> = obs
             .iter()
             .map(|o| {
                 let (r, phi) = (o.d - b, o.heading + o.aoa);
@@ -848,7 +850,7 @@ impl PriorTracker {
                     + perp * perp.transpose() * (r * r * o.sa * o.sa);
                 let j = nalgebra::Matrix2x3::new(1.0, 0.0, r * perp.x, 0.0, 1.0, r * perp.y);
                 let pose = j * o.pose_cov * j.transpose();
-                (Vector2::new(o.x, o.y) + u * r, m, pose)
+                (Vector2::new(o.x, o.y) + u * r, m, pose, j)
             })
             .collect();
         let from: Vector2<f64> = obs
@@ -857,7 +859,7 @@ impl PriorTracker {
             .sum::<Vector2<f64>>()
             / n;
         if self.settings.anchor_pose_uncertainty == AnchorPose::Known {
-            let q = parts.iter().map(|(q, _, _)| q).sum::<Vector2<f64>>() / n;
+            let q = parts.iter().map(|(q, ..)| q).sum::<Vector2<f64>>() / n;
             let dir = (q - from).try_normalize(1e-9)?;
             let perp = Vector2::new(-dir.y, dir.x);
             let sd2: f64 = obs.iter().map(|o| o.sd * o.sd).sum();
@@ -873,20 +875,18 @@ impl PriorTracker {
         }
         let inv: Vec<f64> = parts
             .iter()
-            .map(|(_, m, p)| 1.0 / (m + p).trace().max(1e-12))
+            .map(|(_, m, p, _)| 1.0 / (m + p).trace().max(1e-12))
             .collect();
         let total: f64 = inv.iter().sum();
         let mut q = Vector2::zeros();
         let mut c = Matrix2::zeros();
         let mut independent = Matrix2::zeros();
         let mut loads = Vec::with_capacity(obs.len());
-        for (((qi, m, p), w), o) in parts.iter().zip(&inv).zip(&obs) {
+        for (((qi, m, p, j), w), o) in parts.iter().zip(&inv).zip(&obs) {
             let a = w / total;
             q += qi * a;
             c += m * (a * a) + p * a;
             independent += m * (a * a);
-            let (r, phi) = (o.d - b, o.heading + o.aoa);
-            let j = nalgebra::Matrix2x3::new(1.0, 0.0, -r * phi.sin(), 0.0, 1.0, r * phi.cos());
             loads.push(Load {
                 t: o.t,
                 at: Vector2::new(o.x, o.y),
