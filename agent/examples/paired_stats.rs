@@ -1,8 +1,8 @@
 //! Pairs each MRCLAM reference robot's runs with the others' map against the same runs alone,
 //! over one or more `experiment cooperative --dataset mrclam` output directories (e.g. seeds
 //! 1–10 and 11–20), and prints the table the experiment appends to `results.md`: the median of
-//! the differences, how many runs are lower with the map, and the exact Wilcoxon signed-rank
-//! p-value. `cargo run --release --example paired_stats -- DIR [DIR...]`
+//! the differences (mean MAE, final MAE, ATE), how many runs are lower with the map, and the
+//! exact Wilcoxon signed-rank p-value. `cargo run --release --example paired_stats -- DIR [DIR...]`
 use echomap_agent::evaluate::Curves;
 use echomap_agent::experiment::paired_table;
 
@@ -20,6 +20,7 @@ fn main() -> anyhow::Result<()> {
                 Some(a) => {
                     a.mean_mae.extend(c.mean_mae);
                     a.final_mae.extend(c.final_mae);
+                    a.ate_m.extend(c.ate_m);
                 }
                 None => all.push(c),
             }

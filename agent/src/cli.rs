@@ -433,10 +433,19 @@ pub struct MrclamArgs {
     /// snapshot rate (Hz)
     #[arg(long, default_value_t = 10.0)]
     pub rate: f64,
+    /// how late the robot moves after the odometry's time stamps: `auto` estimates it from
+    /// the landmark bearings (no ground truth), a number of seconds sets it, 0 keeps the time
+    /// stamps as they are
+    #[arg(long, default_value = MRCLAM_ODOMETRY_DELAY)]
+    pub odometry_delay: crate::mrclam::OdometryDelay,
     /// output directory (log.jsonl, truth.json)
     #[arg(long)]
     pub out: PathBuf,
 }
+
+/// `import mrclam --odometry-delay` and `experiment cooperative --dataset mrclam
+/// --odometry-delay` by default.
+pub const MRCLAM_ODOMETRY_DELAY: &str = "0";
 
 #[derive(Debug, Args)]
 pub struct MatchArgs {
@@ -628,6 +637,9 @@ pub struct CooperativeArgs {
     /// build its map); default all five
     #[arg(long, value_delimiter = ',', default_value = "1,2,3,4,5")]
     pub references: Vec<u32>,
+    /// with --dataset mrclam: the importer's `--odometry-delay` (`auto` or seconds)
+    #[arg(long, default_value = MRCLAM_ODOMETRY_DELAY)]
+    pub odometry_delay: crate::mrclam::OdometryDelay,
     /// use this server instead of starting one on loopback
     #[arg(long, env = "ECHOMAP_SERVER")]
     pub server: Option<String>,
@@ -772,10 +784,12 @@ pub fn run(cli: Cli) -> Result<()> {
                 track_gap_s: a.track_gap,
                 rate_hz: a.rate,
                 snr_db: 20.0,
+                odometry_delay: a.odometry_delay,
             };
             let (log, truth) = crate::mrclam::import(&a.dir, opts)?;
+            let source = log.header.source.clone().unwrap_or_default();
             write_sim_output(&crate::sim::SimOutput { log, truth }, &a.out)?;
-            println!("imported MRCLAM robot {} → {}", a.robot, a.out.display());
+            println!("imported {source} → {}", a.out.display());
             Ok(())
         }
         Command::Match(a) => {
@@ -1110,8 +1124,12 @@ fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
                         track_gap_s: 5.0,
                         rate_hz: 10.0,
                         snr_db: 20.0,
+                        odometry_delay: a.odometry_delay,
                     },
                 )?;
+                if let Some(source) = &log.header.source {
+                    tracing::info!("imported {source}");
+                }
                 write_sim_output(&crate::sim::SimOutput { log, truth }, &d)?;
                 logs.push((robot, d));
             }

@@ -426,9 +426,12 @@ pub fn cooperative_mrclam(
 /// many runs are lower with the map, and the exact two-sided Wilcoxon signed-rank p-value of
 /// the differences. Curves are paired by label (`robotN-alone` with `robotN-with-others`),
 /// runs in the order they were appended; a robot with unequal run counts is an error.
+/// The absolute trajectory error (after the best rigid alignment of the whole track, which
+/// takes out a frame turned before the first landmark) is paired the same way when every run
+/// of both has one, "—" otherwise.
 pub fn paired_table(all: &[Curves]) -> Result<String> {
     let mut s = String::from(
-        "| robot | runs | mean MAE: median of with − alone (m) | lower with the map | signed-rank p | final MAE: median of with − alone (m) | lower with the map | signed-rank p |\n| --- | --- | --- | --- | --- | --- | --- | --- |\n",
+        "| robot | runs | mean MAE: median of with − alone (m) | lower with the map | signed-rank p | final MAE: median of with − alone (m) | lower with the map | signed-rank p | ATE: median of with − alone (m) | lower with the map | signed-rank p |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n",
     );
     for alone in all.iter().filter(|c| c.label.ends_with("-alone")) {
         let robot = alone.label.trim_end_matches("-alone");
@@ -455,9 +458,14 @@ pub fn paired_table(all: &[Curves]) -> Result<String> {
                 d.len()
             )
         };
+        let n = alone.mean_mae.len();
+        let ate = if alone.ate_m.len() == n && with.ate_m.len() == n {
+            cols(&alone.ate_m, &with.ate_m)
+        } else {
+            "— | — | —".to_string()
+        };
         s.push_str(&format!(
-            "| {robot} | {} | {} | {} |\n",
-            alone.mean_mae.len(),
+            "| {robot} | {n} | {} | {} | {ate} |\n",
             cols(&alone.mean_mae, &with.mean_mae),
             cols(&alone.final_mae, &with.final_mae)
         ));
@@ -520,9 +528,10 @@ mod tests {
                 .collect()
         };
         let c = |l: &str, es: &[f64]| Curves::from_runs(l.to_string(), &runs(es), Vec::new());
+        // robot 1's ATEs: lower with the map in two of three runs; robot 4 has none
         let all = vec![
-            c("robot1-alone", &[0.5, 0.6, 0.7]),
-            c("robot1-with-others", &[0.4, 0.4, 0.4]),
+            c("robot1-alone", &[0.5, 0.6, 0.7]).with_ate(vec![0.3, 0.3, 0.3]),
+            c("robot1-with-others", &[0.4, 0.4, 0.4]).with_ate(vec![0.2, 0.25, 0.4]),
             c("robot4-alone", &[0.3]),
             c("robot4-with-others", &[0.5]),
         ];
@@ -538,8 +547,12 @@ mod tests {
         assert!((median + 0.2).abs() < 1e-3, "{t}");
         assert_eq!(r1[4], "3 of 3");
         assert_eq!(r1[5], "0.250");
+        let ate: f64 = r1[9].parse().unwrap();
+        assert!((ate + 0.05).abs() < 1e-9, "{t}");
+        assert_eq!(r1[10], "2 of 3");
         let r4 = cells(rows[1]);
         assert_eq!((r4[1].as_str(), r4[4].as_str()), ("robot4", "0 of 1"));
+        assert_eq!(r4[9], "—", "no ATE, no pairing");
         assert!(r4[3].parse::<f64>().unwrap() > 0.0);
         // unequal run counts are refused
         let bad = vec![

@@ -36,6 +36,52 @@ pub struct ImportOptions {
     /// the filter's SNR noise model (`σ = floor ⊕ at_0db·10^(−SNR/20)`) then gives a range
     /// noise that grows in proportion to the range, as the data's residuals do (README)
     pub snr_db: f64,
+    /// how late the robot moves after its odometry's time stamps (`--odometry-delay`)
+    pub odometry_delay: OdometryDelay,
+}
+
+/// The delay between MRCLAM's odometry time stamps and the motion they describe. MRCLAM's
+/// odometry is the commanded velocity, and the robot follows its commands a fraction of a
+/// second late; the landmark bearings, stamped by the camera, show it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum OdometryDelay {
+    /// estimated from the data (`estimate_odometry_delay`): no ground truth used
+    Auto,
+    /// this many seconds (0 = the time stamps as they are)
+    Fixed(f64),
+}
+
+impl std::str::FromStr for OdometryDelay {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s == "auto" {
+            return Ok(Self::Auto);
+        }
+        match s.parse::<f64>() {
+            Ok(v) if v.is_finite() && v.abs() <= MAX_DELAY_S => Ok(Self::Fixed(v)),
+            _ => Err(format!(
+                "expected `auto` or seconds within ±{MAX_DELAY_S}, got {s:?}"
+            )),
+        }
+    }
+}
+
+/// One landmark detection: (t s, landmark subject, range m, bearing rad).
+pub type Detection = (f64, i64, f64, f64);
+
+/// The largest odometry delay the importer considers or accepts (s).
+pub const MAX_DELAY_S: f64 = 2.0;
+
+/// What `estimate_odometry_delay` found.
+#[derive(Debug, Clone, Copy)]
+pub struct DelayEstimate {
+    /// the delay (s) to add to the odometry's time stamps
+    pub delay_s: f64,
+    /// pairs of detections of one landmark that went into it
+    pub pairs: usize,
+    /// RMS of the clipped bearing residuals (rad) with this delay and with none
+    pub rms_rad: f64,
+    pub rms_at_zero_rad: f64,
 }
 
 /// The SNR (dB) written for a detection at `range_m`, given the SNR at 1 m: 20 dB less per
@@ -121,6 +167,153 @@ fn average(odo: &[Vec<f64>], col: usize, t0: f64, t1: f64) -> f64 {
     acc / (t1 - t0)
 }
 
+/// Integral of a zero-order-hold signal (column `col` of `odo`, 0 before its first sample)
+/// from the first time stamp to each time stamp; `integral_to` interpolates it.
+struct OdometryIntegral<'a> {
+    odo: &'a [Vec<f64>],
+    col: usize,
+    cum: Vec<f64>,
+}
+
+impl<'a> OdometryIntegral<'a> {
+    fn new(odo: &'a [Vec<f64>], col: usize) -> Self {
+        let mut cum = Vec::with_capacity(odo.len());
+        let mut acc = 0.0;
+        for (i, r) in odo.iter().enumerate() {
+            if i > 0 {
+                acc += odo[i - 1][col] * (r[0] - odo[i - 1][0]);
+            }
+            cum.push(acc);
+        }
+        Self { odo, col, cum }
+    }
+
+    fn integral_to(&self, t: f64) -> f64 {
+        let i = self.odo.partition_point(|r| r[0] <= t);
+        if i == 0 {
+            return 0.0;
+        }
+        self.cum[i - 1] + self.odo[i - 1][self.col] * (t - self.odo[i - 1][0])
+    }
+
+    /// ∫ over (a, b] of the signal delayed by `delay` s.
+    fn over(&self, a: f64, b: f64, delay: f64) -> f64 {
+        self.integral_to(b - delay) - self.integral_to(a - delay)
+    }
+}
+
+/// Consecutive detections of one landmark at most this far apart (s) form a pair.
+const PAIR_MAX_S: f64 = 1.0;
+/// Bearing residuals are clipped at this (rad): a misread barcode costs no more than this.
+const RESIDUAL_CLIP_RAD: f64 = 0.3;
+/// Fewer pairs than this and `auto` keeps the time stamps as they are.
+const MIN_PAIRS: usize = 30;
+/// Grid step of the delay search (s).
+const DELAY_STEP_S: f64 = 0.01;
+
+/// Estimates how late the robot moves after its odometry's time stamps from the landmark
+/// bearings alone (no ground truth): for each pair of detections of one landmark less than
+/// `PAIR_MAX_S` apart, the odometry delayed by τ moves and turns the robot from the first
+/// detection to the second, which predicts the second bearing from the first range and
+/// bearing. τ minimizes the sum of the squared bearing residuals, each clipped at
+/// `RESIDUAL_CLIP_RAD`, over a grid of `DELAY_STEP_S` within ±`MAX_DELAY_S`, refined by a
+/// parabola through the best grid point and its neighbours. `detections` are (t, landmark,
+/// range, bearing) in time order. `None` with fewer than `MIN_PAIRS` pairs or when the best
+/// delay lies on the grid's edge.
+pub fn estimate_odometry_delay(
+    odo: &[Vec<f64>],
+    detections: &[Detection],
+) -> Option<DelayEstimate> {
+    let mut last: HashMap<i64, (f64, f64, f64)> = HashMap::new();
+    let mut pairs = Vec::new();
+    for &(t, subject, range, bearing) in detections {
+        if let Some(&(t1, r1, b1)) = last.get(&subject)
+            && t > t1
+            && t - t1 <= PAIR_MAX_S
+        {
+            pairs.push((t1, t, r1, b1, bearing));
+        }
+        last.insert(subject, (t, range, bearing));
+    }
+    if pairs.len() < MIN_PAIRS {
+        return None;
+    }
+    let (speed, turn) = (OdometryIntegral::new(odo, 1), OdometryIntegral::new(odo, 2));
+    let cost = |delay: f64| -> f64 {
+        pairs
+            .iter()
+            .map(|&(t1, t2, r1, b1, b2)| {
+                let (ds, dth) = (speed.over(t1, t2, delay), turn.over(t1, t2, delay));
+                let lx = r1 * b1.cos() - ds * (0.5 * dth).cos();
+                let ly = r1 * b1.sin() - ds * (0.5 * dth).sin();
+                let e = wrap_angle(b2 - (ly.atan2(lx) - dth));
+                e.powi(2).min(RESIDUAL_CLIP_RAD.powi(2))
+            })
+            .sum()
+    };
+    let steps = (MAX_DELAY_S / DELAY_STEP_S).round() as i64;
+    let grid: Vec<(f64, f64)> = (-steps..=steps)
+        .map(|k| {
+            let d = k as f64 * DELAY_STEP_S;
+            (d, cost(d))
+        })
+        .collect();
+    let best = (0..grid.len())
+        .min_by(|&a, &b| grid[a].1.total_cmp(&grid[b].1))
+        .expect("the grid is not empty");
+    if best == 0 || best == grid.len() - 1 {
+        return None;
+    }
+    let (c0, c1, c2) = (grid[best - 1].1, grid[best].1, grid[best + 1].1);
+    let curvature = c0 - 2.0 * c1 + c2;
+    let shift = if curvature > 0.0 {
+        (0.5 * (c0 - c2) / curvature).clamp(-0.5, 0.5)
+    } else {
+        0.0
+    };
+    let delay_s = grid[best].0 + shift * DELAY_STEP_S;
+    let rms = |c: f64| (c / pairs.len() as f64).sqrt();
+    Some(DelayEstimate {
+        delay_s,
+        pairs: pairs.len(),
+        rms_rad: rms(cost(delay_s)),
+        rms_at_zero_rad: rms(cost(0.0)),
+    })
+}
+
+/// The detections of known landmarks as (t, landmark, range, bearing), in time order.
+fn landmark_detections(
+    meas: &[Vec<f64>],
+    subject_of: &HashMap<i64, i64>,
+    landmark_pos: &HashMap<i64, (f64, f64)>,
+) -> Vec<Detection> {
+    meas.iter()
+        .filter_map(|r| {
+            let &subject = subject_of.get(&(r[1] as i64))?;
+            (subject > 5 && landmark_pos.contains_key(&subject) && r[2] > 0.0)
+                .then_some((r[0], subject, r[2], r[3]))
+        })
+        .collect()
+}
+
+/// `estimate_odometry_delay` for one robot of an MRCLAM dataset directory, as `import
+/// --odometry-delay auto` computes it (ground truth unread).
+pub fn estimate_robot_delay(dir: &Path, robot: u32) -> Result<Option<DelayEstimate>> {
+    ensure!((1..=5).contains(&robot), "--robot must be 1–5, got {robot}");
+    let subject_of: HashMap<i64, i64> = read(dir, "Barcodes.dat", 2)?
+        .iter()
+        .map(|r| (r[1] as i64, r[0] as i64))
+        .collect();
+    let landmark_pos: HashMap<i64, (f64, f64)> = read(dir, "Landmark_Groundtruth.dat", 5)?
+        .iter()
+        .map(|r| (r[0] as i64, (r[1], r[2])))
+        .collect();
+    let odo = read(dir, &format!("Robot{robot}_Odometry.dat"), 3)?;
+    let meas = read(dir, &format!("Robot{robot}_Measurement.dat"), 4)?;
+    let detections = landmark_detections(&meas, &subject_of, &landmark_pos);
+    Ok(estimate_odometry_delay(&odo, &detections))
+}
+
 /// Converts one robot of an MRCLAM dataset directory.
 pub fn import(dir: &Path, opts: ImportOptions) -> Result<(MeasurementLog, GroundTruth)> {
     ensure!(
@@ -154,6 +347,27 @@ pub fn import(dir: &Path, opts: ImportOptions) -> Result<(MeasurementLog, Ground
         .map(|r| (r[0] as i64, (r[1], r[2])))
         .collect();
 
+    let detections = landmark_detections(&meas, &subject_of, &landmark_pos);
+    let (delay, delay_note) = match opts.odometry_delay {
+        OdometryDelay::Fixed(d) => (d, format!("odometry delay {d} s")),
+        OdometryDelay::Auto => match estimate_odometry_delay(&odo, &detections) {
+            Some(e) => (
+                e.delay_s,
+                format!(
+                    "odometry delay {:.3} s estimated from {} bearing pairs, RMS {:.4} rad (undelayed {:.4})",
+                    e.delay_s, e.pairs, e.rms_rad, e.rms_at_zero_rad
+                ),
+            ),
+            None => (
+                0.0,
+                "odometry delay 0 s (too few bearing pairs to estimate it)".to_string(),
+            ),
+        },
+    };
+    let mut odo = odo;
+    for r in &mut odo {
+        r[0] += delay;
+    }
     let t0 = odo[0][0].max(gt[0][0]);
     let t_end = odo[odo.len() - 1][0].min(gt[gt.len() - 1][0]);
     if t_end <= t0 {
@@ -251,7 +465,7 @@ pub fn import(dir: &Path, opts: ImportOptions) -> Result<(MeasurementLog, Ground
         speed: true,
         track_hold_s: Some(opts.track_gap_s),
         source: Some(format!(
-            "UTIAS MRCLAM robot {} (track gap {} s)",
+            "UTIAS MRCLAM robot {} (track gap {} s, {delay_note})",
             opts.robot, opts.track_gap_s
         )),
     };
@@ -336,6 +550,7 @@ mod tests {
             track_gap_s: 2.0,
             rate_hz: 10.0,
             snr_db: 20.0,
+            odometry_delay: OdometryDelay::Fixed(0.0),
         };
         let (log, truth) = import(dir.path(), opts).unwrap();
         assert_eq!(log.snapshots.len(), 101);
@@ -382,6 +597,123 @@ mod tests {
         MeasurementLog::parse(&log.to_jsonl()).unwrap();
     }
 
+    /// A robot that weaves (ω = 0.6·sin(2πt/8) rad/s at 0.3 m/s) among six landmarks and
+    /// follows its odometry `delay` s late; the camera sees the landmarks within ±0.6 rad
+    /// every 0.2 s, exactly. Returns the odometry rows and the detections.
+    fn weaving_robot(delay: f64) -> (Vec<Vec<f64>>, Vec<Detection>) {
+        let omega = |t: f64| 0.6 * (2.0 * std::f64::consts::PI * t / 8.0).sin();
+        let odo: Vec<Vec<f64>> = (0..=3000)
+            .map(|k| {
+                let t = k as f64 * 0.02;
+                vec![t, 0.3, omega(t)]
+            })
+            .collect();
+        let landmarks: Vec<(f64, f64)> = (0..6)
+            .map(|i| {
+                let a = i as f64 * std::f64::consts::PI / 3.0;
+                (3.0 + 4.0 * a.cos(), 4.0 * a.sin())
+            })
+            .collect();
+        let (mut x, mut y, mut h) = (0.0, 0.0, 0.0);
+        let mut detections = Vec::new();
+        let step = 0.001;
+        for k in 0..60_000 {
+            let t = k as f64 * step;
+            if k % 200 == 0 {
+                for (i, &(lx, ly)) in landmarks.iter().enumerate() {
+                    let (dx, dy) = (lx - x, ly - y);
+                    let bearing = wrap_angle(dy.atan2(dx) - h);
+                    if bearing.abs() < 0.6 && dx.hypot(dy) < 6.0 {
+                        detections.push((t, i as i64 + 6, dx.hypot(dy), bearing));
+                    }
+                }
+            }
+            // the odometry's command at t − delay moves the robot at t (nothing before it)
+            let (v, w) = if t >= delay {
+                (0.3, omega(t - delay))
+            } else {
+                (0.0, 0.0)
+            };
+            x += v * step * h.cos();
+            y += v * step * h.sin();
+            h += w * step;
+        }
+        (odo, detections)
+    }
+
+    #[test]
+    fn the_odometry_delay_is_read_off_the_bearings() {
+        for delay in [0.0, 0.25, 0.4] {
+            let (odo, detections) = weaving_robot(delay);
+            let e = estimate_odometry_delay(&odo, &detections).expect("enough pairs");
+            assert!(e.pairs > 50, "{} pairs", e.pairs);
+            assert!(
+                (e.delay_s - delay).abs() < 0.01,
+                "delay {delay}: estimated {}",
+                e.delay_s
+            );
+            assert!(e.rms_rad <= e.rms_at_zero_rad + 1e-12);
+            if delay > 0.0 {
+                assert!(
+                    e.rms_rad < 0.5 * e.rms_at_zero_rad,
+                    "the delayed odometry explains the bearings: {} vs {}",
+                    e.rms_rad,
+                    e.rms_at_zero_rad
+                );
+            }
+        }
+        // too few pairs: no estimate (and `auto` keeps the time stamps)
+        let (odo, detections) = weaving_robot(0.25);
+        assert!(estimate_odometry_delay(&odo, &detections[..20]).is_none());
+    }
+
+    #[test]
+    fn odometry_delay_flag_values() {
+        assert_eq!("auto".parse::<OdometryDelay>(), Ok(OdometryDelay::Auto));
+        assert_eq!(
+            "0.25".parse::<OdometryDelay>(),
+            Ok(OdometryDelay::Fixed(0.25))
+        );
+        for bad in ["", "soon", "NaN", "inf", "2.5", "-3"] {
+            let err = bad.parse::<OdometryDelay>().unwrap_err();
+            assert!(err.contains("auto"), "{bad:?}: {err}");
+        }
+    }
+
+    #[test]
+    fn a_fixed_delay_shifts_the_odometry() {
+        // the small dataset's odometry, delayed 0.5 s: the robot starts 0.5 s later, so the
+        // log is 5 snapshots shorter and every speed is still the commanded 0.5 m/s
+        let dir = tempfile::tempdir().unwrap();
+        write_dataset(dir.path());
+        let opts = |odometry_delay| ImportOptions {
+            robot: 1,
+            track_gap_s: 2.0,
+            rate_hz: 10.0,
+            snr_db: 20.0,
+            odometry_delay,
+        };
+        let (log0, _) = import(dir.path(), opts(OdometryDelay::Fixed(0.0))).unwrap();
+        let (log5, truth5) = import(dir.path(), opts(OdometryDelay::Fixed(0.5))).unwrap();
+        assert_eq!(log0.snapshots.len(), 101);
+        assert_eq!(log5.snapshots.len(), 96);
+        assert!(log5.snapshots[1..].iter().all(|s| s.speed == Some(0.5)));
+        // the truth starts at 1000.5 s (x = 1.25 m) too, and still ends at 6 m
+        let last = truth5.poses.last().unwrap();
+        assert!((last.x - 4.75).abs() < 1e-9, "{}", last.x);
+        assert!(
+            log5.header
+                .source
+                .as_deref()
+                .unwrap()
+                .contains("odometry delay 0.5 s")
+        );
+        // three detections cannot estimate it: `auto` keeps the time stamps and says so
+        let (auto, _) = import(dir.path(), opts(OdometryDelay::Auto)).unwrap();
+        assert_eq!(auto.snapshots.len(), 101);
+        assert!(auto.header.source.as_deref().unwrap().contains("too few"));
+    }
+
     #[test]
     fn malformed_files_name_the_line() {
         let dir = tempfile::tempdir().unwrap();
@@ -398,6 +730,7 @@ mod tests {
                 track_gap_s: 2.0,
                 rate_hz: 10.0,
                 snr_db: 20.0,
+                odometry_delay: OdometryDelay::Fixed(0.0),
             },
         )
         .unwrap_err();
