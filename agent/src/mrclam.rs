@@ -281,37 +281,49 @@ pub fn estimate_odometry_delay(
     })
 }
 
-/// The detections of known landmarks as (t, landmark, range, bearing), in time order.
-fn landmark_detections(
-    meas: &[Vec<f64>],
-    subject_of: &HashMap<i64, i64>,
-    landmark_pos: &HashMap<i64, (f64, f64)>,
-) -> Vec<Detection> {
-    meas.iter()
-        .filter_map(|r| {
-            let &subject = subject_of.get(&(r[1] as i64))?;
-            (subject > 5 && landmark_pos.contains_key(&subject) && r[2] > 0.0)
-                .then_some((r[0], subject, r[2], r[3]))
+/// A dataset's barcode → subject table and its landmarks' true positions (world frame).
+struct Landmarks {
+    subject_of: HashMap<i64, i64>,
+    position: HashMap<i64, (f64, f64)>,
+}
+
+impl Landmarks {
+    fn read(dir: &Path) -> Result<Self> {
+        Ok(Self {
+            subject_of: read(dir, "Barcodes.dat", 2)?
+                .iter()
+                .map(|r| (r[1] as i64, r[0] as i64))
+                .collect(),
+            position: read(dir, "Landmark_Groundtruth.dat", 5)?
+                .iter()
+                .map(|r| (r[0] as i64, (r[1], r[2])))
+                .collect(),
         })
-        .collect()
+    }
+
+    /// The landmark a measurement row (t, barcode, range, bearing) detected: `None` for
+    /// another robot (subjects 1–5), an unknown barcode or no range.
+    fn detected(&self, row: &[f64]) -> Option<i64> {
+        let &subject = self.subject_of.get(&(row[1] as i64))?;
+        (subject > 5 && self.position.contains_key(&subject) && row[2] > 0.0).then_some(subject)
+    }
+
+    /// The detections of landmarks among measurement rows, in their order.
+    fn detections(&self, meas: &[Vec<f64>]) -> Vec<Detection> {
+        meas.iter()
+            .filter_map(|r| Some((r[0], self.detected(r)?, r[2], r[3])))
+            .collect()
+    }
 }
 
 /// `estimate_odometry_delay` for one robot of an MRCLAM dataset directory, as `import
 /// --odometry-delay auto` computes it (ground truth unread).
 pub fn estimate_robot_delay(dir: &Path, robot: u32) -> Result<Option<DelayEstimate>> {
     ensure!((1..=5).contains(&robot), "--robot must be 1–5, got {robot}");
-    let subject_of: HashMap<i64, i64> = read(dir, "Barcodes.dat", 2)?
-        .iter()
-        .map(|r| (r[1] as i64, r[0] as i64))
-        .collect();
-    let landmark_pos: HashMap<i64, (f64, f64)> = read(dir, "Landmark_Groundtruth.dat", 5)?
-        .iter()
-        .map(|r| (r[0] as i64, (r[1], r[2])))
-        .collect();
+    let landmarks = Landmarks::read(dir)?;
     let odo = read(dir, &format!("Robot{robot}_Odometry.dat"), 3)?;
     let meas = read(dir, &format!("Robot{robot}_Measurement.dat"), 4)?;
-    let detections = landmark_detections(&meas, &subject_of, &landmark_pos);
-    Ok(estimate_odometry_delay(&odo, &detections))
+    Ok(estimate_odometry_delay(&odo, &landmarks.detections(&meas)))
 }
 
 /// Converts one robot of an MRCLAM dataset directory.
@@ -329,28 +341,17 @@ pub fn import(dir: &Path, opts: ImportOptions) -> Result<(MeasurementLog, Ground
         opts.track_gap_s > 0.0 && opts.track_gap_s.is_finite(),
         "--track-gap must be positive"
     );
-    let barcodes = read(dir, "Barcodes.dat", 2)?;
-    let landmarks = read(dir, "Landmark_Groundtruth.dat", 5)?;
+    let landmarks = Landmarks::read(dir)?;
     let gt = read(dir, &format!("Robot{}_Groundtruth.dat", opts.robot), 4)?;
-    let odo = read(dir, &format!("Robot{}_Odometry.dat", opts.robot), 3)?;
+    let mut odo = read(dir, &format!("Robot{}_Odometry.dat", opts.robot), 3)?;
     let meas = read(dir, &format!("Robot{}_Measurement.dat", opts.robot), 4)?;
     ensure!(
         gt.len() >= 2 && !odo.is_empty(),
         "ground truth or odometry is empty"
     );
-    let subject_of: HashMap<i64, i64> = barcodes
-        .iter()
-        .map(|r| (r[1] as i64, r[0] as i64))
-        .collect();
-    let landmark_pos: HashMap<i64, (f64, f64)> = landmarks
-        .iter()
-        .map(|r| (r[0] as i64, (r[1], r[2])))
-        .collect();
-
-    let detections = landmark_detections(&meas, &subject_of, &landmark_pos);
     let (delay, delay_note) = match opts.odometry_delay {
         OdometryDelay::Fixed(d) => (d, format!("odometry delay {d} s")),
-        OdometryDelay::Auto => match estimate_odometry_delay(&odo, &detections) {
+        OdometryDelay::Auto => match estimate_odometry_delay(&odo, &landmarks.detections(&meas)) {
             Some(e) => (
                 e.delay_s,
                 format!(
@@ -360,11 +361,12 @@ pub fn import(dir: &Path, opts: ImportOptions) -> Result<(MeasurementLog, Ground
             ),
             None => (
                 0.0,
-                "odometry delay 0 s (too few bearing pairs to estimate it)".to_string(),
+                format!(
+                    "odometry delay 0 s: not estimated (fewer than {MIN_PAIRS} bearing pairs, or the best delay on the ±{MAX_DELAY_S} s edge)"
+                ),
             ),
         },
     };
-    let mut odo = odo;
     for r in &mut odo {
         r[0] += delay;
     }
@@ -405,12 +407,9 @@ pub fn import(dir: &Path, opts: ImportOptions) -> Result<(MeasurementLog, Ground
             let r = &meas[mi];
             mi += 1;
             looked = true;
-            let Some(&subject) = subject_of.get(&(r[1] as i64)) else {
-                continue;
-            };
-            if subject <= 5 || !landmark_pos.contains_key(&subject) || r[2] <= 0.0 {
+            let Some(subject) = landmarks.detected(r) else {
                 continue; // another robot, an unknown barcode, or no range
-            }
+            };
             latest.insert(subject, (r[0], r[2], r[3]));
         }
         let mut components = Vec::new();
@@ -420,7 +419,7 @@ pub fn import(dir: &Path, opts: ImportOptions) -> Result<(MeasurementLog, Ground
                 _ => {
                     let id = next_track;
                     next_track += 1;
-                    let (lx, ly) = landmark_pos[&subject];
+                    let (lx, ly) = landmarks.position[&subject];
                     let p = local_from_world * Point2::new(lx, ly);
                     transmitters.push(TrueTransmitter {
                         track: id,
@@ -711,7 +710,13 @@ mod tests {
         // three detections cannot estimate it: `auto` keeps the time stamps and says so
         let (auto, _) = import(dir.path(), opts(OdometryDelay::Auto)).unwrap();
         assert_eq!(auto.snapshots.len(), 101);
-        assert!(auto.header.source.as_deref().unwrap().contains("too few"));
+        assert!(
+            auto.header
+                .source
+                .as_deref()
+                .unwrap()
+                .contains("not estimated")
+        );
     }
 
     #[test]
