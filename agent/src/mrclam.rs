@@ -79,8 +79,9 @@ pub struct DelayEstimate {
     pub delay_s: f64,
     /// pairs of detections of one landmark that went into it
     pub pairs: usize,
-    /// RMS of the clipped bearing residuals (rad) with this delay and with none
+    /// RMS of the clipped bearing residuals (rad) with this delay
     pub rms_rad: f64,
+    /// the same with no delay
     pub rms_at_zero_rad: f64,
 }
 
@@ -167,16 +168,17 @@ fn average(odo: &[Vec<f64>], col: usize, t0: f64, t1: f64) -> f64 {
     acc / (t1 - t0)
 }
 
-/// Integral of a zero-order-hold signal (column `col` of `odo`, 0 before its first sample)
-/// from the first time stamp to each time stamp; `integral_to` interpolates it.
-struct OdometryIntegral<'a> {
+/// Integral of a zero-order-hold signal (column `col` of MRCLAM odometry rows (t, v, ω), 0
+/// before its first sample) from the first time stamp to each time stamp; `integral_to`
+/// interpolates it.
+pub struct OdometryIntegral<'a> {
     odo: &'a [Vec<f64>],
     col: usize,
     cum: Vec<f64>,
 }
 
 impl<'a> OdometryIntegral<'a> {
-    fn new(odo: &'a [Vec<f64>], col: usize) -> Self {
+    pub fn new(odo: &'a [Vec<f64>], col: usize) -> Self {
         let mut cum = Vec::with_capacity(odo.len());
         let mut acc = 0.0;
         for (i, r) in odo.iter().enumerate() {
@@ -197,7 +199,7 @@ impl<'a> OdometryIntegral<'a> {
     }
 
     /// ∫ over (a, b] of the signal delayed by `delay` s.
-    fn over(&self, a: f64, b: f64, delay: f64) -> f64 {
+    pub fn over(&self, a: f64, b: f64, delay: f64) -> f64 {
         self.integral_to(b - delay) - self.integral_to(a - delay)
     }
 }

@@ -4,7 +4,8 @@
 use clap::Parser;
 use echomap_agent::cli::{FilterArgs, MRCLAM_RUN_ARGS};
 use echomap_agent::mrclam::{
-    ImportOptions, OdometryDelay, dead_reckoning, estimate_robot_delay, import, parse_table,
+    ImportOptions, OdometryDelay, OdometryIntegral, dead_reckoning, estimate_robot_delay, import,
+    parse_table,
 };
 use echomap_agent::run::run_filter;
 use std::path::PathBuf;
@@ -86,29 +87,14 @@ fn slam_beats_dead_reckoning_on_real_robots() {
 /// Heading error of the odometry, delayed by `delay` s, against the ground truth: the RMS over
 /// consecutive 5 s windows of (integrated angular rate − true heading change), rad.
 fn heading_window_rms(odo: &[Vec<f64>], gt: &[Vec<f64>], delay: f64) -> f64 {
-    // zero-order-hold integral of the angular rate (0 before the first command) at every 5 s
-    // mark, in one pass over the odometry
+    // consecutive 5 s windows over the time both cover
     let t0 = (odo[0][0] + delay).max(gt[0][0]);
     let t1 = (odo[odo.len() - 1][0] + delay).min(gt[gt.len() - 1][0]);
-    let mut cum = Vec::new(); // (t, ∫ω)
-    let (mut acc, mut i, mut t_acc) = (0.0, 0usize, odo[0][0] + delay);
-    let mut t = t0;
-    while t <= t1 {
-        // advance the integral from t_acc to t
-        while t_acc < t {
-            let next = odo
-                .get(i + 1)
-                .map_or(f64::INFINITY, |r| r[0] + delay)
-                .min(t);
-            acc += odo[i][2] * (next - t_acc);
-            t_acc = next;
-            if i + 1 < odo.len() && t_acc >= odo[i + 1][0] + delay {
-                i += 1;
-            }
-        }
-        cum.push((t, acc));
-        t += 5.0;
-    }
+    let marks: Vec<f64> = (0..)
+        .map(|k| t0 + 5.0 * k as f64)
+        .take_while(|&t| t <= t1)
+        .collect();
+    let turn = OdometryIntegral::new(odo, 2);
     let heading = |t: f64| -> f64 {
         // unwrapped true heading by linear interpolation
         let i = gt.partition_point(|r| r[0] <= t).clamp(1, gt.len() - 1);
@@ -116,11 +102,11 @@ fn heading_window_rms(odo: &[Vec<f64>], gt: &[Vec<f64>], delay: f64) -> f64 {
         let f = ((t - a[0]) / (b[0] - a[0])).clamp(0.0, 1.0);
         a[3] + echomap_shared::wrap_angle(b[3] - a[3]) * f
     };
-    let errs: Vec<f64> = cum
+    let errs: Vec<f64> = marks
         .windows(2)
         .map(|w| {
-            let turned = echomap_shared::wrap_angle(heading(w[1].0) - heading(w[0].0));
-            w[1].1 - w[0].1 - turned
+            let turned = echomap_shared::wrap_angle(heading(w[1]) - heading(w[0]));
+            turn.over(w[0], w[1], delay) - turned
         })
         .collect();
     (errs.iter().map(|e| e * e).sum::<f64>() / errs.len() as f64).sqrt()
