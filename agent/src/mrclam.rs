@@ -171,6 +171,7 @@ fn average(odo: &[Vec<f64>], col: usize, t0: f64, t1: f64) -> f64 {
 /// Integral of a zero-order-hold signal (column `col` of MRCLAM odometry rows (t, v, ω), 0
 /// before its first sample) from the first time stamp to each time stamp; `integral_to`
 /// interpolates it.
+#[derive(Debug)]
 pub struct OdometryIntegral<'a> {
     odo: &'a [Vec<f64>],
     col: usize,
