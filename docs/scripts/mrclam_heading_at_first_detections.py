@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""How far each MRCLAM robot's dead-reckoned heading is off when it first sees landmarks (README,
+"""How far each MRCLAM robot's dead-reckoned heading is off when it first sees landmarks (docs/results/cooperative.md,
 "Cooperative Channel-SLAM", session 28). Standard library only.
 
 Takes the output directory of `echomap-agent experiment cooperative --dataset mrclam ...` (its

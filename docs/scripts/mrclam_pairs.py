@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Pairwise map matching on MRCLAM against the truth (README, "Cooperative Channel-SLAM").
+"""Pairwise map matching on MRCLAM against the truth (docs/results/cooperative.md, "Cooperative Channel-SLAM").
 
 Takes the output directory of `echomap-agent experiment cooperative --dataset mrclam ...`:
 every run directory `robotR/run-seedS/` holds the maps the four contributors uploaded

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Why a MRCLAM reference robot gains or loses with the others' map (README, "Cooperative
+"""Why a MRCLAM reference robot gains or loses with the others' map (docs/results/cooperative.md, "Cooperative
 Channel-SLAM", session 18). Standard library only.
 
 Takes the output directory of `echomap-agent experiment cooperative --dataset mrclam ...` and a
