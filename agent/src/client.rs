@@ -115,7 +115,7 @@ enum Attempt {
 
 impl MapClient {
     pub fn new(cfg: ClientConfig) -> Result<Self, ClientError> {
-        let http = reqwest::Client::builder()
+        let http = echomap_server::http::client_builder()
             .timeout(cfg.timeout)
             .user_agent(concat!("echomap-agent/", env!("CARGO_PKG_VERSION")))
             .build()

@@ -80,7 +80,10 @@ fn a_failed_agent_process_is_reported_and_the_others_go_on() {
     let url = format!("{}/v1/maps/crowd-test/contributions", server.url);
     let list: serde_json::Value = tokio::runtime::Runtime::new()
         .unwrap()
-        .block_on(async { reqwest::get(url).await?.json().await })
+        .block_on(async {
+            let c = echomap_server::http::client_builder().build()?;
+            c.get(url).send().await?.json().await
+        })
         .unwrap();
     let agents: Vec<&str> = list["contributions"]
         .as_array()

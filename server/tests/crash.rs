@@ -47,7 +47,7 @@ async fn acknowledged_contributions_survive_sigkill() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("crash.db");
     let tokens = token_file(dir.path(), &[]);
-    let c = reqwest::Client::builder()
+    let c = echomap_server::http::client_builder()
         .timeout(Duration::from_secs(30))
         .build()
         .unwrap();

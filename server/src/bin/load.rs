@@ -146,7 +146,7 @@ async fn get_phase(url: &str, connections: usize, duration: Duration) -> Result<
     let mut tasks = Vec::new();
     for _ in 0..connections {
         // one client per task: one keep-alive connection each
-        let c = reqwest::Client::builder()
+        let c = echomap_server::http::client_builder()
             .pool_max_idle_per_host(1)
             .build()?;
         let url = url.to_owned();
@@ -221,7 +221,7 @@ async fn bench(cli: &Cli) -> Result<()> {
     )
     .await?;
     let pid = server.id().context("server pid")?;
-    let c = reqwest::Client::new();
+    let c = echomap_server::http::client_builder().build()?;
     let world = synth::world(cli.seed, cli.transmitters);
     let maps = cli.maps.max(1);
     for m in 0..maps {
@@ -292,7 +292,7 @@ async fn bench(cli: &Cli) -> Result<()> {
     let mut tasks = Vec::new();
     for (i, token) in tokens.iter().cloned().enumerate() {
         let (c, url, world, counter, accepted) = (
-            reqwest::Client::new(),
+            echomap_server::http::client_builder().build()?,
             format!("{base}/v1/maps/load-{}/contributions", i % maps),
             world.clone(),
             counter.clone(),

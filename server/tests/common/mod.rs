@@ -84,7 +84,7 @@ impl TestServer {
 }
 
 pub fn client() -> reqwest::Client {
-    reqwest::Client::builder()
+    echomap_server::http::client_builder()
         .pool_max_idle_per_host(64)
         .build()
         .unwrap()
