@@ -55,6 +55,18 @@ def interp(ts, vs, t):
     return vs[i - 1] + a * (vs[i] - vs[i - 1])
 
 
+def commanded_turn(odo, a, b):
+    """The commanded angular rate (zero-order hold, 0 before the first row) integrated over
+    [a, b]."""
+    acc = 0.0
+    for m, r in enumerate(odo):
+        nxt = odo[m + 1][0] if m + 1 < len(odo) else math.inf
+        lo, hi = max(r[0], a), min(nxt, b)
+        if hi > lo:
+            acc += r[2] * (hi - lo)
+    return acc
+
+
 def pulses(odo):
     out, i, n = [], 0, len(odo)
     while i < n:
@@ -71,9 +83,7 @@ def pulses(odo):
                 continue
             break
         end = odo[j + 1][0] if j + 1 < n else odo[j][0]
-        cmd = sum(odo[m][2] * ((odo[m + 1][0] if m + 1 < n else end) - odo[m][0])
-                  for m in range(i, j + 1))
-        out.append((odo[i][0], end, cmd))
+        out.append((odo[i][0], end, commanded_turn(odo[i:j + 2], odo[i][0], end)))
         i = j + 1
     return out
 
@@ -122,13 +132,6 @@ ts, hs = unwrapped_heading(gt)
 t0 = max(odo[0][0], gt[0][0])
 print("robot 5, first seconds: time (s), commanded turn so far, true turn so far (rad)")
 for horizon in [4.0, 5.0, 6.0, 6.5, 8.0, 10.0]:
-    cmd = 0.0
-    for m, r in enumerate(odo):
-        if r[0] < t0:
-            continue
-        if r[0] >= t0 + horizon:
-            break
-        nxt = odo[m + 1][0] if m + 1 < len(odo) else r[0]
-        cmd += r[2] * (min(nxt, t0 + horizon) - r[0])
+    cmd = commanded_turn(odo, t0, t0 + horizon)
     true = interp(ts, hs, t0 + horizon) - interp(ts, hs, t0)
     print(f"   {horizon:4.1f}  {cmd:+.3f}  {true:+.3f}  (odometry off by {true - cmd:+.3f})")
