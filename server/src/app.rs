@@ -28,7 +28,12 @@ impl Application {
         if tokens.is_empty() {
             tracing::warn!("no tokens configured: every write will be refused (401)");
         }
-        let storage = Storage::open(&config.database_url, config.read_connections).await?;
+        let storage = Storage::open_with(
+            &config.database_url,
+            config.read_connections,
+            Duration::from_secs(config.database_timeout_s),
+        )
+        .await?;
         let listener = TcpListener::bind(config.listen)
             .await
             .with_context(|| format!("cannot listen on {}", config.listen))?;

@@ -45,7 +45,9 @@ pub struct Config {
     #[arg(long, env = "ECHOMAP_LISTEN", default_value = "127.0.0.1:8080")]
     pub listen: SocketAddr,
 
-    /// SQLite database URL or plain file path; the file is created if missing.
+    /// Database: a SQLite URL or plain file path (the file is created if missing), or a
+    /// PostgreSQL URL `postgres://user:password@host:port/database` (the database must exist;
+    /// several server replicas may share it).
     #[arg(
         long,
         env = "ECHOMAP_DATABASE_URL",
@@ -70,7 +72,8 @@ pub struct Config {
     #[arg(long, env = "ECHOMAP_RATE_BURST", default_value_t = 100)]
     pub rate_limit_burst: u32,
 
-    /// Connections in the read pool (the write path always uses one connection).
+    /// Connections in the read pool. SQLite: the write path always uses one more connection.
+    /// PostgreSQL: one pool of this many plus 4 for commits.
     #[arg(long, env = "ECHOMAP_READ_CONNECTIONS", default_value_t = 4)]
     pub read_connections: u32,
 
@@ -96,6 +99,11 @@ pub struct Config {
     /// transmitter (seed 001). Every replica of a database must use the same value.
     #[arg(long, env = "ECHOMAP_MERGE_ABSORB_CHI2", default_value_t = 0.0, value_parser = non_negative)]
     pub merge_absorb_chi2: f64,
+
+    /// PostgreSQL only: seconds to wait for a database connection, at start-up (a database
+    /// that is still starting) and per request, before failing.
+    #[arg(long, env = "ECHOMAP_DATABASE_TIMEOUT_S", default_value_t = 60)]
+    pub database_timeout_s: u64,
 
     /// Seconds in-flight requests get to finish after SIGTERM/SIGINT.
     #[arg(long, env = "ECHOMAP_SHUTDOWN_GRACE_S", default_value_t = 30)]

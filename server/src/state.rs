@@ -4,7 +4,7 @@
 use crate::auth::{TokenStore, WriteLimiter};
 use crate::config::Config;
 use crate::error::ApiError;
-use crate::storage::Storage;
+use crate::storage::{Kind, Storage};
 use bytes::Bytes;
 use echomap_shared::map::TransmitterMap;
 use echomap_shared::matching::MatchConfig;
@@ -156,10 +156,21 @@ impl AppState {
         Ok(row)
     }
 
-    /// The current version of a map, from the cache or the database.
+    /// The current version of a map, from the cache or the database. On PostgreSQL other
+    /// replicas commit to the same database, so the cached version is served only while the
+    /// stored `current_version` still equals it (one indexed read per request); on SQLite this
+    /// process is the only writer and the cache is authoritative.
     pub async fn current(&self, row: &MapRef) -> Result<Arc<CachedVersion>, ApiError> {
-        if let Some(c) = self.current.read().expect("poisoned").get(&row.id) {
-            return Ok(c.clone());
+        let cached = self.current.read().expect("poisoned").get(&row.id).cloned();
+        if let Some(c) = cached {
+            let fresh = match self.storage.kind() {
+                Kind::Sqlite => true,
+                Kind::Postgres => self.storage.current_version(row.id).await? == Some(c.version),
+            };
+            if fresh {
+                return Ok(c);
+            }
+            metrics::counter!("echomap_cache_reloads_total").increment(1);
         }
         let fresh = self
             .storage

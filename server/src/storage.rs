@@ -1,27 +1,97 @@
-//! All SQL of the server. SQLite in WAL mode with `synchronous=FULL` (an acknowledged
-//! contribution survives a power cut), one writer connection taking `BEGIN IMMEDIATE`
-//! transactions, and a separate read pool that merges never block.
+//! All SQL of the server, on SQLite (the embedded default) or PostgreSQL (the scale path: several
+//! server replicas on one database).
 //!
-//! Every query is a static string with bound parameters (`$1`, valid on SQLite and PostgreSQL).
-//! Writers check that the map's `current_version` is still the one they matched against before
-//! committing (optimistic concurrency), so several server replicas on one database cannot lose
-//! updates; inside one process merges of a map are additionally serialized by a lock.
+//! SQLite runs in WAL mode with `synchronous=FULL` (an acknowledged contribution survives a power
+//! cut), one writer connection taking `BEGIN IMMEDIATE` transactions, and a separate read pool
+//! that merges never block. PostgreSQL uses one pool; a commit locks its map's row
+//! (`SELECT … FOR UPDATE`), which serializes the merges of one map across replicas while other
+//! maps commit in parallel.
+//!
+//! Every query is one static string with bound parameters (`$1`, valid on both databases),
+//! written once and compiled for each backend by the [`on_reader!`] and [`in_write_tx!`]
+//! macros. Writers check that the map's `current_version` is still the one they matched against
+//! before committing (optimistic concurrency), so several server processes on one database
+//! cannot lose updates; inside one process merges of a map are additionally serialized by a
+//! lock.
 
 use crate::delta::Encoding;
+use sqlx::SqlitePool;
+use sqlx::postgres::{PgConnectOptions, PgPool, PgPoolOptions};
 use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
-use sqlx::{Row, SqlitePool};
 use std::str::FromStr;
 use std::time::Duration;
 
+/// The SQLite schema (`migrations/*.sql`).
 pub static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("../migrations");
+/// The same schema in PostgreSQL's types (`migrations/postgres/*.sql`).
+pub static PG_MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("../migrations/postgres");
 
 /// SQLite waits this long for a lock before failing with "database is locked".
 pub const BUSY_TIMEOUT: Duration = Duration::from_secs(10);
 
+/// Which database a URL names: `postgres://` or `postgresql://` is PostgreSQL, anything else
+/// (`sqlite://…` or a plain path) SQLite.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kind {
+    Sqlite,
+    Postgres,
+}
+
+impl Kind {
+    pub fn of_url(url: &str) -> Kind {
+        if url.starts_with("postgres://") || url.starts_with("postgresql://") {
+            Kind::Postgres
+        } else {
+            Kind::Sqlite
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+enum Backend {
+    Sqlite {
+        writer: SqlitePool,
+        reader: SqlitePool,
+    },
+    Postgres(PgPool),
+}
+
 #[derive(Debug, Clone)]
 pub struct Storage {
-    writer: SqlitePool,
-    reader: SqlitePool,
+    backend: Backend,
+}
+
+/// Evaluates `$body` with `$pool` bound to the read pool of the backend (the body is compiled
+/// once per database).
+macro_rules! on_reader {
+    ($self:expr, |$pool:ident| $body:expr) => {
+        match &$self.backend {
+            Backend::Sqlite { reader: $pool, .. } => $body,
+            Backend::Postgres($pool) => $body,
+        }
+    };
+}
+
+/// Evaluates `$body` with `$tx` a write transaction and `$lock` the query that reads a map's
+/// `current_version` and, on PostgreSQL, locks its row until the transaction ends. On SQLite
+/// the transaction is `BEGIN IMMEDIATE` (it takes the database's write lock at once).
+macro_rules! in_write_tx {
+    ($self:expr, |$tx:ident, $lock:ident| $body:expr) => {
+        match &$self.backend {
+            Backend::Sqlite { writer, .. } => {
+                #[allow(unused_mut)]
+                let mut $tx = writer.begin_with("BEGIN IMMEDIATE").await?;
+                let $lock = "SELECT current_version FROM maps WHERE id = $1";
+                $body
+            }
+            Backend::Postgres(pool) => {
+                #[allow(unused_mut)]
+                let mut $tx = pool.begin().await?;
+                let $lock = "SELECT current_version FROM maps WHERE id = $1 FOR UPDATE";
+                $body
+            }
+        }
+    };
 }
 
 #[derive(Debug, Clone, sqlx::FromRow)]
@@ -150,66 +220,57 @@ pub struct Pragmas {
     pub foreign_keys: i64,
 }
 
-/// Optimistic concurrency: the map must still be at the version the caller matched against.
-async fn expect_version(
-    tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
-    map_id: i64,
-    expected: i64,
-) -> Result<(), CommitError> {
-    let actual: i64 = sqlx::query_scalar("SELECT current_version FROM maps WHERE id = $1")
-        .bind(map_id)
-        .fetch_one(&mut **tx)
-        .await?;
-    if actual == expected {
-        Ok(())
-    } else {
-        Err(CommitError::VersionMoved { expected, actual })
-    }
+/// Optimistic concurrency, inside [`in_write_tx!`]: returns `VersionMoved` unless the map is
+/// still at the version the caller matched against.
+macro_rules! expect_version {
+    ($tx:ident, $lock:ident, $map_id:expr, $expected:expr) => {{
+        let (map_id, expected): (i64, i64) = ($map_id, $expected);
+        let actual: i64 = sqlx::query_scalar($lock)
+            .bind(map_id)
+            .fetch_one(&mut *$tx)
+            .await?;
+        if actual != expected {
+            return Err(CommitError::VersionMoved { expected, actual });
+        }
+    }};
 }
 
-/// Appends version `number` (its parent is `number − 1`, none for the first).
+/// Appends version `$number` (its parent is `number − 1`, none for the first), inside
+/// [`in_write_tx!`].
+macro_rules! insert_version {
+    ($tx:ident, $map_id:expr, $number:expr, $kind:expr, $contribution_id:expr, $v:expr, $created_ms:expr) => {{
+        let (number, v): (i64, &NewVersion) = ($number, $v);
+        sqlx::query(
+            "INSERT INTO versions (map_id, number, parent, kind, contribution_id, body, encoding, transmitters, created_ms)
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
+        )
+        .bind($map_id)
+        .bind(number)
+        .bind((number > 1).then_some(number - 1))
+        .bind($kind)
+        .bind($contribution_id)
+        .bind(&v.body)
+        .bind(v.encoding.as_str())
+        .bind(v.transmitters)
+        .bind($created_ms)
+        .execute(&mut *$tx)
+        .await?;
+    }};
+}
+
+/// Moves the map's `current_version`, inside [`in_write_tx!`].
+macro_rules! set_current_version {
+    ($tx:ident, $map_id:expr, $number:expr) => {{
+        sqlx::query("UPDATE maps SET current_version = $1 WHERE id = $2")
+            .bind($number)
+            .bind($map_id)
+            .execute(&mut *$tx)
+            .await?;
+    }};
+}
+
 fn corrupt(map_id: i64, number: i64, why: &str) -> sqlx::Error {
     sqlx::Error::Protocol(format!("version {number} of map {map_id}: {why}"))
-}
-
-async fn insert_version(
-    tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
-    map_id: i64,
-    number: i64,
-    kind: &str,
-    contribution_id: i64,
-    v: &NewVersion,
-    created_ms: i64,
-) -> Result<(), sqlx::Error> {
-    sqlx::query(
-        "INSERT INTO versions (map_id, number, parent, kind, contribution_id, body, encoding, transmitters, created_ms)
-         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
-    )
-    .bind(map_id)
-    .bind(number)
-    .bind((number > 1).then_some(number - 1))
-    .bind(kind)
-    .bind(contribution_id)
-    .bind(&v.body)
-    .bind(v.encoding.as_str())
-    .bind(v.transmitters)
-    .bind(created_ms)
-    .execute(&mut **tx)
-    .await?;
-    Ok(())
-}
-
-async fn set_current_version(
-    tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
-    map_id: i64,
-    number: i64,
-) -> Result<(), sqlx::Error> {
-    sqlx::query("UPDATE maps SET current_version = $1 WHERE id = $2")
-        .bind(number)
-        .bind(map_id)
-        .execute(&mut **tx)
-        .await?;
-    Ok(())
 }
 
 pub fn now_ms() -> i64 {
@@ -219,7 +280,7 @@ pub fn now_ms() -> i64 {
         .unwrap_or(0)
 }
 
-fn connect_options(url: &str) -> Result<SqliteConnectOptions, sqlx::Error> {
+fn sqlite_options(url: &str) -> Result<SqliteConnectOptions, sqlx::Error> {
     let base = if url.starts_with("sqlite:") {
         SqliteConnectOptions::from_str(url)?
     } else {
@@ -233,33 +294,94 @@ fn connect_options(url: &str) -> Result<SqliteConnectOptions, sqlx::Error> {
         .foreign_keys(true))
 }
 
+/// How long [`Storage::open`] waits for a PostgreSQL connection (the server's
+/// `--database-timeout-s` default).
+pub const PG_CONNECT_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// Connections a PostgreSQL pool keeps for commits, besides `read_connections` for reads.
+pub const PG_WRITE_CONNECTIONS: u32 = 4;
+
 impl Storage {
-    /// Opens (creating if missing) the database and applies the migrations.
+    /// Opens the database and applies the migrations. SQLite: the file is created if missing.
+    /// PostgreSQL: the database must exist; the migrator takes an advisory lock, so replicas
+    /// starting together apply each migration once.
     pub async fn open(url: &str, read_connections: u32) -> anyhow::Result<Self> {
+        Self::open_with(url, read_connections, PG_CONNECT_TIMEOUT).await
+    }
+
+    /// [`Storage::open`], waiting at most `pg_timeout` for a PostgreSQL connection (at
+    /// start-up and per request).
+    pub async fn open_with(
+        url: &str,
+        read_connections: u32,
+        pg_timeout: Duration,
+    ) -> anyhow::Result<Self> {
         use anyhow::Context;
-        let opts = connect_options(url).with_context(|| format!("bad database URL {url:?}"))?;
-        let writer = SqlitePoolOptions::new()
-            .max_connections(1)
-            .acquire_timeout(Duration::from_secs(60))
-            .connect_with(opts.clone())
-            .await
-            .with_context(|| format!("cannot open database {url:?}"))?;
-        MIGRATOR.run(&writer).await.context("applying migrations")?;
-        let reader = SqlitePoolOptions::new()
-            .max_connections(read_connections.max(1))
-            .acquire_timeout(Duration::from_secs(30))
-            .connect_with(opts)
-            .await
-            .context("opening the read pool")?;
-        Ok(Storage { writer, reader })
+        let read_connections = read_connections.max(1);
+        let backend = match Kind::of_url(url) {
+            Kind::Sqlite => {
+                let opts =
+                    sqlite_options(url).with_context(|| format!("bad database URL {url:?}"))?;
+                let writer = SqlitePoolOptions::new()
+                    .max_connections(1)
+                    .acquire_timeout(Duration::from_secs(60))
+                    .connect_with(opts.clone())
+                    .await
+                    .with_context(|| format!("cannot open database {url:?}"))?;
+                MIGRATOR.run(&writer).await.context("applying migrations")?;
+                let reader = SqlitePoolOptions::new()
+                    .max_connections(read_connections)
+                    .acquire_timeout(Duration::from_secs(30))
+                    .connect_with(opts)
+                    .await
+                    .context("opening the read pool")?;
+                Backend::Sqlite { writer, reader }
+            }
+            Kind::Postgres => {
+                let opts = PgConnectOptions::from_str(url)
+                    .with_context(|| format!("bad database URL {}", redact(url)))?;
+                let pool = PgPoolOptions::new()
+                    .max_connections(read_connections + PG_WRITE_CONNECTIONS)
+                    .acquire_timeout(pg_timeout)
+                    .connect_with(opts)
+                    .await
+                    .with_context(|| format!("cannot connect to {}", redact(url)))?;
+                PG_MIGRATOR
+                    .run(&pool)
+                    .await
+                    .context("applying migrations")?;
+                Backend::Postgres(pool)
+            }
+        };
+        Ok(Storage { backend })
+    }
+
+    pub fn kind(&self) -> Kind {
+        match self.backend {
+            Backend::Sqlite { .. } => Kind::Sqlite,
+            Backend::Postgres(_) => Kind::Postgres,
+        }
+    }
+
+    fn migrator(&self) -> &'static sqlx::migrate::Migrator {
+        match self.kind() {
+            Kind::Sqlite => &MIGRATOR,
+            Kind::Postgres => &PG_MIGRATOR,
+        }
     }
 
     pub async fn close(&self) {
-        self.reader.close().await;
-        self.writer.close().await;
+        match &self.backend {
+            Backend::Sqlite { writer, reader } => {
+                reader.close().await;
+                writer.close().await;
+            }
+            Backend::Postgres(pool) => pool.close().await,
+        }
     }
 
-    /// The settings of one connection of each pool (they must agree).
+    /// The settings of one connection of each SQLite pool (they must agree); an error on
+    /// PostgreSQL, which has no PRAGMAs.
     pub async fn pragmas(&self) -> Result<[Pragmas; 2], sqlx::Error> {
         async fn read(pool: &SqlitePool) -> Result<Pragmas, sqlx::Error> {
             let mut c = pool.acquire().await?;
@@ -278,16 +400,22 @@ impl Storage {
                     .await?,
             })
         }
-        Ok([read(&self.writer).await?, read(&self.reader).await?])
+        match &self.backend {
+            Backend::Sqlite { writer, reader } => Ok([read(writer).await?, read(reader).await?]),
+            Backend::Postgres(_) => Err(sqlx::Error::Configuration(
+                "PRAGMAs are SQLite settings; this server runs on PostgreSQL".into(),
+            )),
+        }
     }
 
     /// Database reachable and every migration of this binary applied.
     pub async fn ready(&self) -> Result<bool, sqlx::Error> {
-        let applied: i64 =
-            sqlx::query_scalar("SELECT COUNT(*) FROM _sqlx_migrations WHERE success = 1")
-                .fetch_one(&self.reader)
-                .await?;
-        Ok(applied as usize >= MIGRATOR.migrations.len())
+        let applied: i64 = on_reader!(self, |pool| {
+            sqlx::query_scalar("SELECT COUNT(*) FROM _sqlx_migrations WHERE success")
+                .fetch_one(pool)
+                .await?
+        });
+        Ok(applied as usize >= self.migrator().migrations.len())
     }
 
     /// Creates the map if it does not exist; returns it and whether it was created.
@@ -296,41 +424,57 @@ impl Storage {
         name: &str,
         private: bool,
     ) -> Result<(MapRow, bool), sqlx::Error> {
-        let mut tx = self.writer.begin_with("BEGIN IMMEDIATE").await?;
-        let inserted = sqlx::query(
-            "INSERT INTO maps (name, private, created_ms) VALUES ($1, $2, $3) ON CONFLICT (name) DO NOTHING",
-        )
-        .bind(name)
-        .bind(private)
-        .bind(now_ms())
-        .execute(&mut *tx)
-        .await?
-        .rows_affected()
-            == 1;
-        tx.commit().await?;
+        let inserted = in_write_tx!(self, |tx, _lock| {
+            let n = sqlx::query(
+                "INSERT INTO maps (name, private, created_ms) VALUES ($1, $2, $3) ON CONFLICT (name) DO NOTHING",
+            )
+            .bind(name)
+            .bind(private)
+            .bind(now_ms())
+            .execute(&mut *tx)
+            .await?
+            .rows_affected();
+            tx.commit().await?;
+            n == 1
+        });
         let row = self.map(name).await?.ok_or(sqlx::Error::RowNotFound)?;
         Ok((row, inserted))
     }
 
     pub async fn map(&self, name: &str) -> Result<Option<MapRow>, sqlx::Error> {
-        sqlx::query_as(
-            "SELECT m.id, m.name, m.private, m.created_ms, m.current_version,
-                    (SELECT COUNT(*) FROM contributions c WHERE c.map_id = m.id AND c.status = 'accepted') AS contributions
-             FROM maps m WHERE m.name = $1",
-        )
-        .bind(name)
-        .fetch_optional(&self.reader)
-        .await
+        on_reader!(self, |pool| {
+            sqlx::query_as(
+                "SELECT m.id, m.name, m.private, m.created_ms, m.current_version,
+                        (SELECT COUNT(*) FROM contributions c WHERE c.map_id = m.id AND c.status = 'accepted') AS contributions
+                 FROM maps m WHERE m.name = $1",
+            )
+            .bind(name)
+            .fetch_optional(pool)
+            .await
+        })
+    }
+
+    /// The version number a map is at, as stored (for replicas: another process may have
+    /// committed since this one cached it).
+    pub async fn current_version(&self, map_id: i64) -> Result<Option<i64>, sqlx::Error> {
+        on_reader!(self, |pool| {
+            sqlx::query_scalar("SELECT current_version FROM maps WHERE id = $1")
+                .bind(map_id)
+                .fetch_optional(pool)
+                .await
+        })
     }
 
     pub async fn maps(&self) -> Result<Vec<MapRow>, sqlx::Error> {
-        sqlx::query_as(
-            "SELECT m.id, m.name, m.private, m.created_ms, m.current_version,
-                    (SELECT COUNT(*) FROM contributions c WHERE c.map_id = m.id AND c.status = 'accepted') AS contributions
-             FROM maps m ORDER BY m.name",
-        )
-        .fetch_all(&self.reader)
-        .await
+        on_reader!(self, |pool| {
+            sqlx::query_as(
+                "SELECT m.id, m.name, m.private, m.created_ms, m.current_version,
+                        (SELECT COUNT(*) FROM contributions c WHERE c.map_id = m.id AND c.status = 'accepted') AS contributions
+                 FROM maps m ORDER BY m.name",
+            )
+            .fetch_all(pool)
+            .await
+        })
     }
 
     /// Version `number` with its full document (a stored delta is resolved from the nearest
@@ -340,30 +484,38 @@ impl Storage {
         map_id: i64,
         number: i64,
     ) -> Result<Option<VersionRow>, sqlx::Error> {
-        let mut tx = self.reader.begin().await?;
-        let row: Option<VersionRow> = sqlx::query_as(
-            "SELECT number, parent, kind, contribution_id, body, encoding, transmitters, created_ms
-             FROM versions WHERE map_id = $1 AND number = $2",
-        )
-        .bind(map_id)
-        .bind(number)
-        .fetch_optional(&mut *tx)
-        .await?;
-        let Some(mut row) = row else {
-            return Ok(None);
-        };
-        if row.encoding == Encoding::Delta.as_str() {
-            let chain: Vec<(String, String)> = sqlx::query_as(
-                "SELECT encoding, body FROM versions
-                 WHERE map_id = $1 AND number <= $2 AND number >= (
-                     SELECT MAX(number) FROM versions
-                     WHERE map_id = $1 AND number < $2 AND encoding = 'full')
-                 ORDER BY number",
+        let (mut row, chain) = on_reader!(self, |pool| {
+            let mut tx = pool.begin().await?;
+            let row: Option<VersionRow> = sqlx::query_as(
+                "SELECT number, parent, kind, contribution_id, body, encoding, transmitters, created_ms
+                 FROM versions WHERE map_id = $1 AND number = $2",
             )
             .bind(map_id)
             .bind(number)
-            .fetch_all(&mut *tx)
+            .fetch_optional(&mut *tx)
             .await?;
+            let Some(row) = row else {
+                return Ok(None);
+            };
+            let chain: Vec<(String, String)> = if row.encoding == Encoding::Delta.as_str() {
+                sqlx::query_as(
+                    "SELECT encoding, body FROM versions
+                     WHERE map_id = $1 AND number <= $2 AND number >= (
+                         SELECT MAX(number) FROM versions
+                         WHERE map_id = $1 AND number < $2 AND encoding = 'full')
+                     ORDER BY number",
+                )
+                .bind(map_id)
+                .bind(number)
+                .fetch_all(&mut *tx)
+                .await?
+            } else {
+                Vec::new()
+            };
+            tx.commit().await?;
+            (row, chain)
+        });
+        if row.encoding == Encoding::Delta.as_str() {
             let mut steps = chain.into_iter();
             let mut doc = match steps.next() {
                 Some((e, body)) if e == Encoding::Full.as_str() => body,
@@ -375,7 +527,6 @@ impl Storage {
             row.body = doc;
             row.encoding = Encoding::Full.as_str().into();
         }
-        tx.commit().await?;
         Ok(Some(row))
     }
 
@@ -385,14 +536,16 @@ impl Storage {
         map_id: i64,
         n: i64,
     ) -> Result<i64, sqlx::Error> {
-        sqlx::query_scalar(
-            "SELECT COALESCE(SUM(CASE kind WHEN 'merge' THEN 1 ELSE -1 END), 0)
-             FROM versions WHERE map_id = $1 AND number <= $2",
-        )
-        .bind(map_id)
-        .bind(n)
-        .fetch_one(&self.reader)
-        .await
+        on_reader!(self, |pool| {
+            sqlx::query_scalar(
+                "SELECT COALESCE(SUM(CASE kind WHEN 'merge' THEN 1 ELSE -1 END), 0)
+                 FROM versions WHERE map_id = $1 AND number <= $2",
+            )
+            .bind(map_id)
+            .bind(n)
+            .fetch_one(pool)
+            .await
+        })
     }
 
     pub async fn stored_response(
@@ -401,90 +554,94 @@ impl Storage {
         contributor: &str,
         key: &str,
     ) -> Result<Option<StoredResponse>, sqlx::Error> {
-        sqlx::query_as(
-            "SELECT request_sha256, response_status, response_body FROM contributions
-             WHERE map_id = $1 AND contributor = $2 AND idempotency_key = $3",
-        )
-        .bind(map_id)
-        .bind(contributor)
-        .bind(key)
-        .fetch_optional(&self.reader)
-        .await
+        on_reader!(self, |pool| {
+            sqlx::query_as(
+                "SELECT request_sha256, response_status, response_body FROM contributions
+                 WHERE map_id = $1 AND contributor = $2 AND idempotency_key = $3",
+            )
+            .bind(map_id)
+            .bind(contributor)
+            .bind(key)
+            .fetch_optional(pool)
+            .await
+        })
     }
 
     /// Commits a batch of contributions (each accepted one with the version it produced, in
-    /// order) in one `BEGIN IMMEDIATE` transaction — one fsync for the batch — provided the
-    /// map is still at `expected_version`. Each entry's `respond(contribution id, new version)`
-    /// renders the response stored with it (replayed on retries).
+    /// order) in one write transaction — one fsync for the batch — provided the map is still
+    /// at `expected_version`. Each entry's `respond(contribution id, new version)` renders the
+    /// response stored with it (replayed on retries).
     pub async fn commit_batch(
         &self,
         map_id: i64,
         expected_version: i64,
         entries: Vec<PendingCommit>,
     ) -> Result<Vec<(u16, Vec<u8>)>, CommitError> {
-        let mut tx = self.writer.begin_with("BEGIN IMMEDIATE").await?;
-        expect_version(&mut tx, map_id, expected_version).await?;
-        let now = now_ms();
-        let mut current = expected_version;
-        let mut responses = Vec::with_capacity(entries.len());
-        for (index, e) in entries.into_iter().enumerate() {
-            let c = &e.contribution;
-            let inserted = sqlx::query(
-                "INSERT INTO contributions (map_id, contributor, agent, run, traveled_m, idempotency_key,
-                    request_sha256, body, received_ms, status, reason, transmitters, matched_version,
-                    transform, inliers, score, merged, added, response_status, response_body)
-                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15, $16, $17, $18, 0, x'')
-                 ON CONFLICT (map_id, contributor, idempotency_key) DO NOTHING",
-            )
-            .bind(map_id)
-            .bind(&c.contributor)
-            .bind(&c.agent)
-            .bind(&c.run)
-            .bind(c.traveled_m)
-            .bind(&c.idempotency_key)
-            .bind(&c.request_sha256)
-            .bind(&c.body)
-            .bind(now)
-            .bind(if c.accepted { "accepted" } else { "rejected" })
-            .bind(&c.reason)
-            .bind(c.transmitters)
-            .bind(current)
-            .bind(&c.transform)
-            .bind(c.inliers)
-            .bind(c.score)
-            .bind(c.merged)
-            .bind(c.added)
-            .execute(&mut *tx)
-            .await?;
-            if inserted.rows_affected() == 0 {
-                return Err(CommitError::DuplicateKey { index });
+        in_write_tx!(self, |tx, lock| {
+            expect_version!(tx, lock, map_id, expected_version);
+            let now = now_ms();
+            let mut current = expected_version;
+            let mut responses = Vec::with_capacity(entries.len());
+            for (index, e) in entries.into_iter().enumerate() {
+                let c = &e.contribution;
+                let id: Option<i64> = sqlx::query_scalar(
+                    "INSERT INTO contributions (map_id, contributor, agent, run, traveled_m, idempotency_key,
+                        request_sha256, body, received_ms, status, reason, transmitters, matched_version,
+                        transform, inliers, score, merged, added, response_status, response_body)
+                     VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15, $16, $17, $18, 0, $19)
+                     ON CONFLICT (map_id, contributor, idempotency_key) DO NOTHING
+                     RETURNING id",
+                )
+                .bind(map_id)
+                .bind(&c.contributor)
+                .bind(&c.agent)
+                .bind(&c.run)
+                .bind(c.traveled_m)
+                .bind(&c.idempotency_key)
+                .bind(&c.request_sha256)
+                .bind(&c.body)
+                .bind(now)
+                .bind(if c.accepted { "accepted" } else { "rejected" })
+                .bind(&c.reason)
+                .bind(c.transmitters)
+                .bind(current)
+                .bind(&c.transform)
+                .bind(c.inliers)
+                .bind(c.score)
+                .bind(c.merged)
+                .bind(c.added)
+                .bind(Vec::<u8>::new())
+                .fetch_optional(&mut *tx)
+                .await?;
+                let Some(id) = id else {
+                    return Err(CommitError::DuplicateKey { index });
+                };
+                let new_version = match &e.version {
+                    Some(v) => {
+                        let number = current + 1;
+                        insert_version!(tx, map_id, number, "merge", id, v, now);
+                        current = number;
+                        Some(number)
+                    }
+                    None => None,
+                };
+                let (status, body) = (e.respond)(id, new_version);
+                sqlx::query(
+                    "UPDATE contributions SET response_status = $1, response_body = $2 WHERE id = $3",
+                )
+                .bind(i64::from(status))
+                .bind(&body)
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+                responses.push((status, body));
             }
-            let id = inserted.last_insert_rowid();
-            let new_version = match &e.version {
-                Some(v) => {
-                    let number = current + 1;
-                    insert_version(&mut tx, map_id, number, "merge", id, v, now).await?;
-                    current = number;
-                    Some(number)
-                }
-                None => None,
-            };
-            let (status, body) = (e.respond)(id, new_version);
-            sqlx::query(
-                "UPDATE contributions SET response_status = $1, response_body = $2 WHERE id = $3",
-            )
-            .bind(i64::from(status))
-            .bind(&body)
-            .bind(id)
-            .execute(&mut *tx)
-            .await?;
-            responses.push((status, body));
-        }
-        if current != expected_version {
-            set_current_version(&mut tx, map_id, current).await?;
-        }
-        tx.commit().await?;
-        Ok(responses)
+            if current != expected_version {
+                set_current_version!(tx, map_id, current);
+            }
+            tx.commit().await?;
+            Ok(responses)
+        })
     }
 
     pub async fn contributions(
@@ -493,17 +650,19 @@ impl Storage {
         after: i64,
         limit: i64,
     ) -> Result<Vec<ContributionRow>, sqlx::Error> {
-        sqlx::query_as(
-            "SELECT c.id, c.contributor, c.agent, c.run, c.traveled_m, c.received_ms, c.status, c.reason,
-                    c.transmitters, c.matched_version, c.transform, c.inliers, c.score, c.merged, c.added,
-                    (SELECT v.number FROM versions v WHERE v.contribution_id = c.id AND v.kind = 'merge') AS version
-             FROM contributions c WHERE c.map_id = $1 AND c.id > $2 ORDER BY c.id LIMIT $3",
-        )
-        .bind(map_id)
-        .bind(after)
-        .bind(limit)
-        .fetch_all(&self.reader)
-        .await
+        on_reader!(self, |pool| {
+            sqlx::query_as(
+                "SELECT c.id, c.contributor, c.agent, c.run, c.traveled_m, c.received_ms, c.status, c.reason,
+                        c.transmitters, c.matched_version, c.transform, c.inliers, c.score, c.merged, c.added,
+                        (SELECT v.number FROM versions v WHERE v.contribution_id = c.id AND v.kind = 'merge') AS version
+                 FROM contributions c WHERE c.map_id = $1 AND c.id > $2 ORDER BY c.id LIMIT $3",
+            )
+            .bind(map_id)
+            .bind(after)
+            .bind(limit)
+            .fetch_all(pool)
+            .await
+        })
     }
 
     /// Status of one contribution of a map, with its contributor.
@@ -512,14 +671,15 @@ impl Storage {
         map_id: i64,
         id: i64,
     ) -> Result<Option<(String, String)>, sqlx::Error> {
-        let row = sqlx::query(
-            "SELECT status, contributor FROM contributions WHERE map_id = $1 AND id = $2",
-        )
-        .bind(map_id)
-        .bind(id)
-        .fetch_optional(&self.reader)
-        .await?;
-        Ok(row.map(|r| (r.get(0), r.get(1))))
+        on_reader!(self, |pool| {
+            sqlx::query_as(
+                "SELECT status, contributor FROM contributions WHERE map_id = $1 AND id = $2",
+            )
+            .bind(map_id)
+            .bind(id)
+            .fetch_optional(pool)
+            .await
+        })
     }
 
     /// Verbatim bodies of the accepted contributions of a map, oldest first, without `except`.
@@ -528,14 +688,15 @@ impl Storage {
         map_id: i64,
         except: i64,
     ) -> Result<Vec<(i64, String)>, sqlx::Error> {
-        let rows = sqlx::query(
-            "SELECT id, body FROM contributions WHERE map_id = $1 AND status = 'accepted' AND id <> $2 ORDER BY id",
-        )
-        .bind(map_id)
-        .bind(except)
-        .fetch_all(&self.reader)
-        .await?;
-        Ok(rows.into_iter().map(|r| (r.get(0), r.get(1))).collect())
+        on_reader!(self, |pool| {
+            sqlx::query_as(
+                "SELECT id, body FROM contributions WHERE map_id = $1 AND status = 'accepted' AND id <> $2 ORDER BY id",
+            )
+            .bind(map_id)
+            .bind(except)
+            .fetch_all(pool)
+            .await
+        })
     }
 
     /// Marks `contribution_id` rolled back and commits the rebuilt map as the next version,
@@ -547,32 +708,78 @@ impl Storage {
         contribution_id: i64,
         rebuilt: &NewVersion,
     ) -> Result<i64, CommitError> {
-        let mut tx = self.writer.begin_with("BEGIN IMMEDIATE").await?;
-        expect_version(&mut tx, map_id, expected_version).await?;
-        let changed = sqlx::query(
-            "UPDATE contributions SET status = 'rolled_back' WHERE id = $1 AND map_id = $2 AND status = 'accepted'",
-        )
-        .bind(contribution_id)
-        .bind(map_id)
-        .execute(&mut *tx)
-        .await?
-        .rows_affected();
-        if changed != 1 {
-            return Err(CommitError::NotAccepted);
+        in_write_tx!(self, |tx, lock| {
+            expect_version!(tx, lock, map_id, expected_version);
+            let changed = sqlx::query(
+                "UPDATE contributions SET status = 'rolled_back' WHERE id = $1 AND map_id = $2 AND status = 'accepted'",
+            )
+            .bind(contribution_id)
+            .bind(map_id)
+            .execute(&mut *tx)
+            .await?
+            .rows_affected();
+            if changed != 1 {
+                return Err(CommitError::NotAccepted);
+            }
+            let number = expected_version + 1;
+            insert_version!(
+                tx,
+                map_id,
+                number,
+                "rollback",
+                contribution_id,
+                rebuilt,
+                now_ms()
+            );
+            set_current_version!(tx, map_id, number);
+            tx.commit().await?;
+            Ok(number)
+        })
+    }
+}
+
+/// The URL without its password, for error messages and logs.
+pub fn redact(url: &str) -> String {
+    match (url.find("://"), url.rfind('@')) {
+        (Some(scheme), Some(at)) if at > scheme => {
+            let userinfo = &url[scheme + 3..at];
+            match userinfo.find(':') {
+                Some(colon) => format!(
+                    "{}{}:***{}",
+                    &url[..scheme + 3],
+                    &userinfo[..colon],
+                    &url[at..]
+                ),
+                None => url.to_owned(),
+            }
         }
-        let number = expected_version + 1;
-        insert_version(
-            &mut tx,
-            map_id,
-            number,
-            "rollback",
-            contribution_id,
-            rebuilt,
-            now_ms(),
-        )
-        .await?;
-        set_current_version(&mut tx, map_id, number).await?;
-        tx.commit().await?;
-        Ok(number)
+        _ => url.to_owned(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_url_names_the_backend() {
+        assert_eq!(Kind::of_url("postgres://u@h/db"), Kind::Postgres);
+        assert_eq!(Kind::of_url("postgresql://h/db"), Kind::Postgres);
+        assert_eq!(Kind::of_url("sqlite://echomap.db"), Kind::Sqlite);
+        assert_eq!(Kind::of_url("/var/lib/echomap/echomap.db"), Kind::Sqlite);
+        assert_eq!(Kind::of_url("postgres.db"), Kind::Sqlite);
+    }
+
+    #[test]
+    fn a_password_never_reaches_a_message() {
+        assert_eq!(
+            redact("postgres://echomap:s3cret@db:5432/echomap"),
+            "postgres://echomap:***@db:5432/echomap"
+        );
+        assert_eq!(
+            redact("postgres://echomap@db/echomap"),
+            "postgres://echomap@db/echomap"
+        );
+        assert_eq!(redact("sqlite://echomap.db"), "sqlite://echomap.db");
     }
 }

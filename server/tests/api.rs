@@ -4,9 +4,7 @@
 mod common;
 
 use common::*;
-use echomap_shared::map::TransmitterMap;
 use serde_json::{Value, json};
-use std::sync::Arc;
 
 #[tokio::test]
 async fn first_contribution_initializes_and_later_ones_match_and_merge() {
@@ -623,38 +621,11 @@ async fn concurrent_uploads_lose_no_update() {
     .await
     .unwrap();
     assert!(stored.iter().any(|v| v.1 == "delta") && stored.iter().any(|v| v.1 == "full"));
-    let mut parent: Option<Arc<TransmitterMap>> = None;
-    for (n, _, body, sha) in &stored {
-        let upload: Value = serde_json::from_str(body).unwrap();
-        let user = Arc::new(TransmitterMap::from_json(&upload["map"].to_string()).unwrap());
-        let expected = match echomap_server::merge::integrate(
-            parent.as_deref(),
-            &user,
-            echomap_server::merge::seed_of(sha),
-            &Default::default(),
-            &Default::default(),
-        )
-        .unwrap()
-        {
-            echomap_server::merge::Outcome::Initialized { map }
-            | echomap_server::merge::Outcome::Merged { map, .. } => map,
-            other => panic!("version {n} from a rejected upload: {other:?}"),
-        };
-        let served: Value = c
-            .get(s.url(&format!("/v1/maps/crowd/versions/{n}")))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
-        assert_eq!(
-            served["transmitters"],
-            serde_json::to_value(expected.as_ref()).unwrap()["transmitters"],
-            "version {n}"
-        );
-        parent = Some(expected);
-    }
+    let chain: Vec<(i64, String, String)> = stored
+        .into_iter()
+        .map(|(n, _, body, sha)| (n, body, sha))
+        .collect();
+    assert_versions_are_merges(&c, &[&s.base], "crowd", &chain).await;
     pool.close().await;
     let cur: Value = c
         .get(s.url("/v1/maps/crowd"))

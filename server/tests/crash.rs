@@ -9,38 +9,10 @@ use common::*;
 use rand::{RngExt, SeedableRng};
 use serde_json::Value;
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::Path;
-use std::process::Stdio;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
-use tokio::io::{AsyncBufReadExt, BufReader};
-use tokio::process::{Child, Command};
-
-async fn spawn_server(db: &Path, tokens: &Path) -> (Child, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_echomap-server"))
-        .args(["--listen", "127.0.0.1:0", "--database-url"])
-        .arg(db)
-        .arg("--token-file")
-        .arg(tokens)
-        .env("RUST_LOG", "warn")
-        .env("ECHOMAP_RATE_LIMIT", "100000")
-        .env("ECHOMAP_RATE_BURST", "100000")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .kill_on_drop(true)
-        .spawn()
-        .expect("start echomap-server");
-    let stdout = child.stdout.take().unwrap();
-    let mut line = String::new();
-    BufReader::new(stdout).read_line(&mut line).await.unwrap();
-    let base = line
-        .trim()
-        .strip_prefix("echomap-server listening on ")
-        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
-        .to_owned();
-    (child, base)
-}
+use tokio::process::Child;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn acknowledged_contributions_survive_sigkill() {
@@ -60,7 +32,7 @@ async fn acknowledged_contributions_survive_sigkill() {
     let rounds = 20;
     let mut interrupted = 0;
     for round in 0..rounds {
-        let (mut child, base) = spawn_server(&db, &tokens).await;
+        let (mut child, base) = spawn_server_process(&db, &tokens).await;
         if round == 0 {
             let r = c
                 .put(format!("{base}/v1/maps/durable"))
@@ -186,7 +158,7 @@ async fn acknowledged_contributions_survive_sigkill() {
     pool.close().await;
 
     // and a restarted server serves it
-    let (mut child, base) = spawn_server(&db, &tokens).await;
+    let (mut child, base) = spawn_server_process(&db, &tokens).await;
     let cur: Value = c
         .get(format!("{base}/v1/maps/durable"))
         .send()
@@ -219,7 +191,7 @@ async fn sigterm_shuts_down_cleanly() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("term.db");
     let tokens = token_file(dir.path(), &[]);
-    let (mut child, base) = spawn_server(&db, &tokens).await;
+    let (mut child, base) = spawn_server_process(&db, &tokens).await;
     let c = client();
     assert_eq!(
         c.get(format!("{base}/readyz"))
@@ -249,7 +221,7 @@ async fn sigterm_right_after_start_up_is_still_graceful() {
     for round in 0..5 {
         let dir = tempfile::tempdir().unwrap();
         let tokens = token_file(dir.path(), &[]);
-        let (mut child, _base) = spawn_server(&dir.path().join("early.db"), &tokens).await;
+        let (mut child, _base) = spawn_server_process(&dir.path().join("early.db"), &tokens).await;
         let exit = sigterm_and_wait(&mut child).await;
         assert!(exit.success(), "round {round}: {exit:?}");
     }

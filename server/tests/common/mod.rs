@@ -165,3 +165,83 @@ pub async fn dump(db: &Path) -> String {
     pool.close().await;
     out
 }
+
+/// Starts a real `echomap-server` process on 127.0.0.1:0 with `database` (a SQLite path or a
+/// `postgres://` URL); returns it with its base URL, read from its first stdout line.
+pub async fn spawn_server_process(
+    database: impl AsRef<std::ffi::OsStr>,
+    tokens: &Path,
+) -> (tokio::process::Child, String) {
+    use tokio::io::AsyncBufReadExt;
+    let mut child = tokio::process::Command::new(env!("CARGO_BIN_EXE_echomap-server"))
+        .args(["--listen", "127.0.0.1:0", "--database-url"])
+        .arg(database)
+        .arg("--token-file")
+        .arg(tokens)
+        .env("RUST_LOG", "warn")
+        .env("ECHOMAP_RATE_LIMIT", "100000")
+        .env("ECHOMAP_RATE_BURST", "100000")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .kill_on_drop(true)
+        .spawn()
+        .expect("start echomap-server");
+    let stdout = child.stdout.take().unwrap();
+    let mut line = String::new();
+    tokio::io::BufReader::new(stdout)
+        .read_line(&mut line)
+        .await
+        .unwrap();
+    let base = line
+        .trim()
+        .strip_prefix("echomap-server listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+        .to_owned();
+    (child, base)
+}
+
+/// Checks that every stored version `(number, upload body, request SHA-256)`, oldest first,
+/// is served by each of `bases` (in turn) as exactly the merge of its parent and its upload —
+/// whether its body is stored whole or as a delta.
+pub async fn assert_versions_are_merges(
+    c: &reqwest::Client,
+    bases: &[&str],
+    map: &str,
+    versions: &[(i64, String, String)],
+) {
+    use echomap_shared::map::TransmitterMap;
+    use std::sync::Arc;
+    let mut parent: Option<Arc<TransmitterMap>> = None;
+    for (i, (n, body, sha)) in versions.iter().enumerate() {
+        let upload: Value = serde_json::from_str(body).unwrap();
+        let user = Arc::new(TransmitterMap::from_json(&upload["map"].to_string()).unwrap());
+        let expected = match echomap_server::merge::integrate(
+            parent.as_deref(),
+            &user,
+            echomap_server::merge::seed_of(sha),
+            &Default::default(),
+            &Default::default(),
+        )
+        .unwrap()
+        {
+            echomap_server::merge::Outcome::Initialized { map }
+            | echomap_server::merge::Outcome::Merged { map, .. } => map,
+            other => panic!("version {n} from a rejected upload: {other:?}"),
+        };
+        let base = bases[i % bases.len()];
+        let served: Value = c
+            .get(format!("{base}/v1/maps/{map}/versions/{n}"))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        assert_eq!(
+            served["transmitters"],
+            serde_json::to_value(expected.as_ref()).unwrap()["transmitters"],
+            "version {n} from {base}"
+        );
+        parent = Some(expected);
+    }
+}

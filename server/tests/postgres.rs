@@ -1,0 +1,410 @@
+//! The scale path: two `echomap-server` processes (replicas) on one real PostgreSQL server.
+//!
+//! Each test starts a private PostgreSQL cluster (initdb in a temporary directory, loopback
+//! only, `trust` authentication) from the server binaries on this machine (Debian's
+//! `postgresql` package), so nothing outside the test is touched. Without those binaries the
+//! tests fail and say so; `ECHOMAP_SKIP_POSTGRES=1` skips them on purpose, with a line on
+//! stderr.
+
+mod common;
+
+use common::*;
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+/// A private PostgreSQL server for one test, stopped (and its files removed) on drop.
+struct Postgres {
+    /// the cluster's files, removed when the test ends
+    _dir: tempfile::TempDir,
+    child: Child,
+    port: u16,
+}
+
+/// `name` from PATH, else from the newest `/usr/lib/postgresql/<major>/bin`.
+fn pg_binary(name: &str) -> Option<PathBuf> {
+    let on_path = std::env::var_os("PATH")
+        .into_iter()
+        .flat_map(|p| std::env::split_paths(&p).collect::<Vec<_>>())
+        .map(|d| d.join(name))
+        .find(|p| p.is_file());
+    on_path.or_else(|| {
+        let mut majors: Vec<PathBuf> = std::fs::read_dir("/usr/lib/postgresql")
+            .ok()?
+            .filter_map(|e| e.ok().map(|e| e.path().join("bin").join(name)))
+            .filter(|p| p.is_file())
+            .collect();
+        majors.sort();
+        majors.pop()
+    })
+}
+
+fn running_as_root() -> bool {
+    Command::new("id")
+        .arg("-u")
+        .output()
+        .map(|o| String::from_utf8_lossy(&o.stdout).trim() == "0")
+        .unwrap_or(false)
+}
+
+/// PostgreSQL refuses to run as root: then the cluster is owned by and run as `postgres`.
+fn as_cluster_owner(program: &Path) -> Command {
+    if running_as_root() {
+        let mut c = Command::new("runuser");
+        c.args(["-u", "postgres", "--"]).arg(program);
+        c
+    } else {
+        Command::new(program)
+    }
+}
+
+impl Postgres {
+    /// `None` only when `ECHOMAP_SKIP_POSTGRES=1` is set.
+    fn start() -> Option<Postgres> {
+        if std::env::var("ECHOMAP_SKIP_POSTGRES").as_deref() == Ok("1") {
+            eprintln!("skipped: ECHOMAP_SKIP_POSTGRES=1");
+            return None;
+        }
+        let (Some(initdb), Some(postgres)) = (pg_binary("initdb"), pg_binary("postgres")) else {
+            panic!(
+                "the PostgreSQL tests need the server binaries initdb and postgres \
+                 (Debian: apt-get install postgresql); ECHOMAP_SKIP_POSTGRES=1 skips them"
+            );
+        };
+        let dir = tempfile::tempdir().unwrap();
+        if running_as_root() {
+            let ok = Command::new("chown")
+                .args(["postgres:postgres"])
+                .arg(dir.path())
+                .status()
+                .unwrap()
+                .success();
+            assert!(ok, "chown of the cluster directory to postgres");
+        }
+        let data = dir.path().join("data");
+        let out = as_cluster_owner(&initdb)
+            .arg("-D")
+            .arg(&data)
+            .args([
+                "-U",
+                "echomap",
+                "--auth=trust",
+                "--encoding=UTF8",
+                "--locale=C",
+                "--no-sync",
+            ])
+            .output()
+            .expect("run initdb");
+        assert!(
+            out.status.success(),
+            "initdb failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let child = as_cluster_owner(&postgres)
+            .arg("-D")
+            .arg(&data)
+            .args(["-p", &port.to_string(), "-c", "listen_addresses=127.0.0.1"])
+            .arg("-c")
+            .arg(format!("unix_socket_directories={}", dir.path().display()))
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("start postgres");
+        Some(Postgres {
+            _dir: dir,
+            child,
+            port,
+        })
+    }
+
+    fn url(&self, database: &str) -> String {
+        format!("postgres://echomap@127.0.0.1:{}/{database}", self.port)
+    }
+
+    /// Waits for the server, creates `database` and returns its URL.
+    async fn create_database(&self, database: &str) -> String {
+        let admin = self.url("postgres");
+        let mut waited = Duration::ZERO;
+        let pool = loop {
+            match sqlx::PgPool::connect(&admin).await {
+                Ok(p) => break p,
+                Err(e) if waited < Duration::from_secs(60) => {
+                    let _ = e;
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                    waited += Duration::from_millis(100);
+                }
+                Err(e) => panic!("PostgreSQL did not come up in 60 s: {e}"),
+            }
+        };
+        sqlx::query(sqlx::AssertSqlSafe(format!("CREATE DATABASE {database}")))
+            .execute(&pool)
+            .await
+            .unwrap();
+        pool.close().await;
+        self.url(database)
+    }
+}
+
+impl Drop for Postgres {
+    fn drop(&mut self) {
+        // `immediate` shutdown: the data is thrown away with the directory. (A signal to the
+        // child would reach `runuser`, not the server, when running as root.)
+        if let Some(pg_ctl) = pg_binary("pg_ctl") {
+            let _ = as_cluster_owner(&pg_ctl)
+                .arg("-D")
+                .arg(self._dir.path().join("data"))
+                .args(["stop", "-m", "immediate", "-w"])
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .status();
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+async fn get_json(c: &reqwest::Client, url: String) -> (reqwest::StatusCode, Value) {
+    let r = c.get(url).send().await.unwrap();
+    let status = r.status();
+    (status, r.json().await.unwrap())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_replicas_on_one_postgres_lose_no_update() {
+    let Some(pg) = Postgres::start() else { return };
+    let url = pg.create_database("replicas").await;
+    let dir = tempfile::tempdir().unwrap();
+    let tokens = token_file(dir.path(), &[]);
+    // both replicas apply the migrations at once: the migrator's advisory lock serializes them
+    let ((_a, a), (_b, b)) = tokio::join!(
+        spawn_server_process(&url, &tokens),
+        spawn_server_process(&url, &tokens)
+    );
+    let replicas = [a.clone(), b.clone()];
+    let c = client();
+    let r = c
+        .put(format!("{a}/v1/maps/crowd"))
+        .bearer_auth(OPERATOR)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    // the other replica sees the map at once and does not create it again
+    let r = c
+        .put(format!("{b}/v1/maps/crowd"))
+        .bearer_auth(OPERATOR)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+
+    // 16 uploaders × 6 uploads, each upload to the other replica than the one before
+    let truth = world(3, 25);
+    let (uploaders, uploads) = (16u64, 6u64);
+    let mut tasks = Vec::new();
+    for u in 0..uploaders {
+        let (c, truth, replicas) = (c.clone(), truth.clone(), replicas.clone());
+        let token = [ALICE, BOB, OPERATOR][(u % 3) as usize];
+        tasks.push(tokio::spawn(async move {
+            let mut out = Vec::new();
+            for k in 0..uploads {
+                let body = contribution(
+                    user_map(&truth, 5000 + u * 10 + k, 0.8, 0.1),
+                    &format!("{u}-{k}"),
+                );
+                let base = &replicas[((u + k) % 2) as usize];
+                let r = c
+                    .post(format!("{base}/v1/maps/crowd/contributions"))
+                    .bearer_auth(token)
+                    .header("Idempotency-Key", format!("u{u}-k{k}"))
+                    .json(&body)
+                    .send()
+                    .await
+                    .unwrap();
+                let status = r.status().as_u16();
+                out.push((status, r.json::<Value>().await.unwrap()));
+            }
+            out
+        }));
+    }
+    let mut accepted = Vec::new();
+    let mut rejected = 0;
+    for t in tasks {
+        for (status, v) in t.await.unwrap() {
+            match status {
+                201 => accepted.push((
+                    v["contribution"].as_i64().unwrap(),
+                    v["version"].as_i64().unwrap(),
+                )),
+                422 => rejected += 1,
+                other => panic!("unexpected {other}: {v}"),
+            }
+        }
+    }
+    let total = (uploaders * uploads) as usize;
+    assert_eq!(accepted.len() + rejected, total);
+    assert!(
+        accepted.len() * 10 >= total * 9,
+        "only {} of {total} accepted",
+        accepted.len()
+    );
+    // versions 1..n without gaps, each produced by exactly one 201, parents chained
+    let mut versions: Vec<i64> = accepted.iter().map(|a| a.1).collect();
+    versions.sort_unstable();
+    assert_eq!(versions, (1..=accepted.len() as i64).collect::<Vec<_>>());
+    let db = sqlx::PgPool::connect(&url).await.unwrap();
+    let provenance: Vec<(i64, i64, Option<i64>)> =
+        sqlx::query_as("SELECT contribution_id, number, parent FROM versions ORDER BY number")
+            .fetch_all(&db)
+            .await
+            .unwrap();
+    let mut expected = accepted.clone();
+    expected.sort_by_key(|a| a.1);
+    assert_eq!(
+        provenance.iter().map(|p| (p.0, p.1)).collect::<Vec<_>>(),
+        expected,
+        "every 201 in exactly one version's provenance"
+    );
+    for (_, n, parent) in &provenance {
+        assert_eq!(*parent, (*n > 1).then_some(n - 1));
+    }
+    let stored: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM contributions")
+        .fetch_one(&db)
+        .await
+        .unwrap();
+    assert_eq!(stored as usize, total);
+    // every version, read from both replicas in turn, is the merge of its parent and upload
+    let chain: Vec<(i64, String, String)> = sqlx::query_as(
+        "SELECT v.number, c.body, c.request_sha256 FROM versions v
+         JOIN contributions c ON c.id = v.contribution_id ORDER BY v.number",
+    )
+    .fetch_all(&db)
+    .await
+    .unwrap();
+    assert_versions_are_merges(&c, &[&a, &b], "crowd", &chain).await;
+    // both replicas serve the head, whichever committed it
+    let n = accepted.len() as i64;
+    for base in [&a, &b] {
+        let (status, cur) = get_json(&c, format!("{base}/v1/maps/crowd")).await;
+        assert_eq!(status, 200);
+        assert_eq!(
+            (cur["version"].as_i64(), cur["contributions"].as_i64()),
+            (Some(n), Some(n))
+        );
+    }
+
+    // the same upload and key sent to A, then to B: one contribution, the same bytes back
+    let body = contribution(user_map(&truth, 9001, 0.8, 0.1), "again");
+    let mut answers = Vec::new();
+    for base in [&a, &b] {
+        let r = c
+            .post(format!("{base}/v1/maps/crowd/contributions"))
+            .bearer_auth(ALICE)
+            .header("Idempotency-Key", "same-key-both-replicas")
+            .json(&body)
+            .send()
+            .await
+            .unwrap();
+        answers.push((r.status(), r.bytes().await.unwrap()));
+    }
+    assert_eq!(answers[0], answers[1]);
+    assert_eq!(answers[0].0, 201, "{:?}", answers[0].1);
+    let copies: i64 = sqlx::query_scalar(
+        "SELECT COUNT(*) FROM contributions WHERE idempotency_key = 'same-key-both-replicas'",
+    )
+    .fetch_one(&db)
+    .await
+    .unwrap();
+    assert_eq!(copies, 1);
+
+    // A caches the head; B rolls a contribution back; A must serve B's new version at once
+    let (_, head) = get_json(&c, format!("{a}/v1/maps/crowd")).await;
+    let head = head["version"].as_i64().unwrap();
+    assert_eq!(head, n + 1);
+    let victim = accepted[0].0;
+    let r = c
+        .delete(format!("{b}/v1/maps/crowd/contributions/{victim}"))
+        .bearer_auth(OPERATOR)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let rolled: Value = r.json().await.unwrap();
+    assert_eq!(rolled["version"].as_i64(), Some(head + 1));
+    let (_, cur) = get_json(&c, format!("{a}/v1/maps/crowd")).await;
+    assert_eq!(
+        cur["version"].as_i64(),
+        Some(head + 1),
+        "replica A serves a stale version"
+    );
+    assert_eq!(cur["contributions"].as_i64(), Some(n));
+    let (_, via_b) = get_json(&c, format!("{b}/v1/maps/crowd")).await;
+    assert_eq!(cur, via_b);
+    // and a second rollback of the same contribution, now through A, is refused
+    let r = c
+        .delete(format!("{a}/v1/maps/crowd/contributions/{victim}"))
+        .bearer_auth(OPERATOR)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 409);
+    db.close().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn readiness_and_settings_on_postgres() {
+    let Some(pg) = Postgres::start() else { return };
+    let url = pg.create_database("ready").await;
+    let storage = echomap_server::storage::Storage::open(&url, 2)
+        .await
+        .unwrap();
+    assert_eq!(storage.kind(), echomap_server::storage::Kind::Postgres);
+    assert!(storage.ready().await.unwrap(), "every migration applied");
+    // SQLite's PRAGMAs do not exist here: a clear error, not made-up values
+    let e = storage.pragmas().await.unwrap_err().to_string();
+    assert!(e.contains("PostgreSQL"), "{e}");
+    // opening again (a restart, or a second replica) applies nothing twice
+    let again = echomap_server::storage::Storage::open(&url, 2)
+        .await
+        .unwrap();
+    let applied: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM _sqlx_migrations")
+        .fetch_one(&sqlx::PgPool::connect(&url).await.unwrap())
+        .await
+        .unwrap();
+    assert_eq!(
+        applied as usize,
+        echomap_server::storage::PG_MIGRATOR.migrations.len()
+    );
+    let (created, fresh) = again.create_map("hall", true).await.unwrap();
+    assert!(fresh && created.private && created.current_version == 0);
+    let (seen, fresh) = storage.create_map("hall", false).await.unwrap();
+    assert!(!fresh && seen.private && seen.id == created.id);
+    again.close().await;
+    storage.close().await;
+}
+
+#[tokio::test]
+async fn an_unreachable_postgres_is_a_clear_error_without_the_password() {
+    // a port nothing listens on: bound, then released
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let url = format!("postgres://echomap:hunter2@127.0.0.1:{port}/echomap");
+    let e = echomap_server::storage::Storage::open_with(&url, 1, Duration::from_secs(2))
+        .await
+        .unwrap_err();
+    let msg = format!("{e:#}");
+    assert!(
+        msg.contains("cannot connect to postgres://echomap:***@127.0.0.1"),
+        "{msg}"
+    );
+    assert!(!msg.contains("hunter2"), "{msg}");
+}
