@@ -1,13 +1,15 @@
 //! `echomap-load`: load benchmark of the map server on loopback.
 //!
 //! Starts `echomap-server` (the binary next to this one) as a child process on a temporary
-//! SQLite file, seeds a map, then measures
+//! SQLite file — or `--replicas N` processes on one `--database-url postgres://…` — seeds a map,
+//! then measures
 //! 1. `GET /v1/maps/{map}` of a 100-transmitter, 3-component map at `--connections`
 //!    connections, and the same bytes from a static file server (`echomap-load serve-static`,
 //!    tower-http `ServeDir`, also a child process) in the same run;
 //! 2. contributions of 30-transmitter user maps from `--uploaders` concurrent uploaders;
 //!
-//! and reports throughput, p50/p99 latency and the server's peak RSS (`VmHWM`).
+//! and reports throughput, p50/p99 latency and the server's peak RSS (`VmHWM`). With several
+//! replicas, connection and uploader `i` use replica `i mod N`.
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
@@ -52,6 +54,13 @@ struct Cli {
     /// map are serialized, different maps merge in parallel
     #[arg(long, default_value_t = 1)]
     maps: usize,
+    /// database of the servers (default: a SQLite file in a temporary directory); a
+    /// PostgreSQL database must be empty of `load-*` maps (use a fresh one per run)
+    #[arg(long)]
+    database_url: Option<String>,
+    /// server processes on the one database (several need PostgreSQL)
+    #[arg(long, default_value_t = 1)]
+    replicas: usize,
     /// seed of the synthetic maps
     #[arg(long, default_value_t = 1)]
     seed: u64,
@@ -141,15 +150,16 @@ fn peak_rss_mib(pid: u32) -> Option<f64> {
     Some(kb / 1024.0)
 }
 
-async fn get_phase(url: &str, connections: usize, duration: Duration) -> Result<Phase> {
+/// `connections` keep-alive connections, connection `i` to `urls[i mod N]`.
+async fn get_phase(urls: &[String], connections: usize, duration: Duration) -> Result<Phase> {
     let stop = Instant::now() + duration;
     let mut tasks = Vec::new();
-    for _ in 0..connections {
+    for i in 0..connections {
         // one client per task: one keep-alive connection each
         let c = echomap_server::http::client_builder()
             .pool_max_idle_per_host(1)
             .build()?;
-        let url = url.to_owned();
+        let url = urls[i % urls.len()].clone();
         tasks.push(tokio::spawn(async move {
             let mut p = Phase::default();
             while Instant::now() < stop {
@@ -207,21 +217,52 @@ async fn bench(cli: &Cli) -> Result<()> {
         text.push_str(&format!("{t} uploader-{i} *\n"));
     }
     std::fs::write(&token_file, text)?;
-    let db = dir.path().join("load.db");
-    let (server, base) = spawn(
-        Command::new(sibling("echomap-server")?)
-            .args(["--listen", "127.0.0.1:0", "--database-url"])
-            .arg(&db)
-            .arg("--token-file")
-            .arg(&token_file)
-            .env("RUST_LOG", "warn")
-            .env("ECHOMAP_RATE_LIMIT", "1000000")
-            .env("ECHOMAP_RATE_BURST", "1000000"),
-        "echomap-server listening on ",
-    )
-    .await?;
-    let pid = server.id().context("server pid")?;
+    let db = match &cli.database_url {
+        Some(url) => url.clone(),
+        None => dir.path().join("load.db").display().to_string(),
+    };
+    let replicas = cli.replicas.max(1);
+    if replicas > 1
+        && echomap_server::storage::Kind::of_url(&db) != echomap_server::storage::Kind::Postgres
+    {
+        bail!("--replicas {replicas} needs a shared database: --database-url postgres://…");
+    }
+    let mut servers = Vec::new();
+    for _ in 0..replicas {
+        servers.push(
+            spawn(
+                Command::new(sibling("echomap-server")?)
+                    .args(["--listen", "127.0.0.1:0", "--database-url"])
+                    .arg(&db)
+                    .arg("--token-file")
+                    .arg(&token_file)
+                    .env("RUST_LOG", "warn")
+                    .env("ECHOMAP_RATE_LIMIT", "1000000")
+                    .env("ECHOMAP_RATE_BURST", "1000000"),
+                "echomap-server listening on ",
+            )
+            .await?,
+        );
+    }
+    let pids: Vec<u32> = servers
+        .iter()
+        .map(|(child, _)| child.id().context("server pid"))
+        .collect::<Result<_>>()?;
+    let bases: Vec<String> = servers.iter().map(|(_, base)| base.clone()).collect();
+    let base = bases[0].clone();
+    println!(
+        "{replicas} server process(es) on {}",
+        echomap_server::storage::redact(&db)
+    );
     let c = echomap_server::http::client_builder().build()?;
+    if c.get(format!("{base}/v1/maps/load-0"))
+        .send()
+        .await?
+        .status()
+        != 404
+    {
+        bail!("the database already holds the map load-0: give each run a fresh database");
+    }
     let world = synth::world(cli.seed, cli.transmitters);
     let maps = cli.maps.max(1);
     for m in 0..maps {
@@ -265,11 +306,15 @@ async fn bench(cli: &Cli) -> Result<()> {
         "GET phase: {} connections, {:.0} s each",
         cli.connections, cli.duration_s
     );
-    let get = get_phase(&map_url, cli.connections, duration).await?;
+    let map_urls: Vec<String> = bases
+        .iter()
+        .map(|b| format!("{b}/v1/maps/load-0"))
+        .collect();
+    let get = get_phase(&map_urls, cli.connections, duration).await?;
     report("echomap-server GET map", &get);
-    let rss_get = peak_rss_mib(pid);
+    let rss_get: Vec<Option<f64>> = pids.iter().map(|&p| peak_rss_mib(p)).collect();
     let stat = get_phase(
-        &format!("{static_base}/map.json"),
+        &[format!("{static_base}/map.json")],
         cli.connections,
         duration,
     )
@@ -293,7 +338,11 @@ async fn bench(cli: &Cli) -> Result<()> {
     for (i, token) in tokens.iter().cloned().enumerate() {
         let (c, url, world, counter, accepted) = (
             echomap_server::http::client_builder().build()?,
-            format!("{base}/v1/maps/load-{}/contributions", i % maps),
+            format!(
+                "{}/v1/maps/load-{}/contributions",
+                bases[i % replicas],
+                i % maps
+            ),
             world.clone(),
             counter.clone(),
             accepted.clone(),
@@ -339,19 +388,22 @@ async fn bench(cli: &Cli) -> Result<()> {
         up.ok,
         accepted.load(Ordering::Relaxed)
     );
-    let metrics = c
-        .get(format!("{base}/metrics"))
-        .send()
-        .await?
-        .text()
-        .await?;
+    // counters summed over the replicas
+    let mut metrics = Vec::new();
+    for b in &bases {
+        metrics.push(c.get(format!("{b}/metrics")).send().await?.text().await?);
+    }
     let value = |name: &str| -> f64 {
         metrics
-            .lines()
-            .find(|l| l.starts_with(name))
-            .and_then(|l| l.split_whitespace().last())
-            .and_then(|v| v.parse().ok())
-            .unwrap_or(f64::NAN)
+            .iter()
+            .map(|m| {
+                m.lines()
+                    .find(|l| l.starts_with(name))
+                    .and_then(|l| l.split_whitespace().last())
+                    .and_then(|v| v.parse::<f64>().ok())
+                    .unwrap_or(0.0)
+            })
+            .sum()
     };
     let (sum, count) = (
         value("echomap_integrate_duration_seconds_sum"),
@@ -365,12 +417,13 @@ async fn bench(cli: &Cli) -> Result<()> {
         "uploads per group commit: mean {:.1}",
         value("echomap_commit_batch_size_sum") / value("echomap_commit_batch_size_count")
     );
-    let rss_all = peak_rss_mib(pid);
-    println!(
-        "server peak RSS: {:.1} MiB after the GET phase, {:.1} MiB after both",
-        rss_get.unwrap_or(f64::NAN),
-        rss_all.unwrap_or(f64::NAN)
-    );
-    drop(server);
+    for (i, &pid) in pids.iter().enumerate() {
+        println!(
+            "server {i} peak RSS: {:.1} MiB after the GET phase, {:.1} MiB after both",
+            rss_get[i].unwrap_or(f64::NAN),
+            peak_rss_mib(pid).unwrap_or(f64::NAN)
+        );
+    }
+    drop(servers);
     Ok(())
 }
