@@ -59,20 +59,6 @@ fn is_problem(r: &reqwest::Response) -> bool {
         .is_some_and(|v| v.to_str().unwrap() == "application/problem+json")
 }
 
-/// A map with three accepted contributions of world 1.
-async fn seeded_map(c: &reqwest::Client, s: &TestServer, name: &str) -> Vec<Value> {
-    create_map(c, s, name).await;
-    let truth = world(1, 25);
-    let mut bodies = Vec::new();
-    for (k, seed) in [11u64, 12, 13].into_iter().enumerate() {
-        let b = contribution(user_map(&truth, seed, 0.85, 0.1), &format!("run-{k}"));
-        let r = post_contribution(c, s, name, ALICE, &format!("{name}-{k}"), &b).await;
-        assert_eq!(r.status(), 201, "{}", r.text().await.unwrap());
-        bodies.push(b);
-    }
-    bodies
-}
-
 #[tokio::test]
 async fn idempotent_retry_returns_the_stored_response_byte_for_byte() {
     let s = TestServer::start().await;

@@ -408,3 +408,115 @@ async fn an_unreachable_postgres_is_a_clear_error_without_the_password() {
     );
     assert!(!msg.contains("hunter2"), "{msg}");
 }
+
+/// The read and write paths a client uses, on PostgreSQL (one in-process server): rejected
+/// uploads stored with their reason and the map unchanged, listing and paging, ETag and 304,
+/// private maps, past versions, and a rollback that equals merging the others afresh.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_api_on_postgres() {
+    let Some(pg) = Postgres::start() else { return };
+    let url = pg.create_database("api").await;
+    let s = TestServer::start_with(|cfg| cfg.database_url = url.clone()).await;
+    assert_eq!(
+        s.state.storage.kind(),
+        echomap_server::storage::Kind::Postgres
+    );
+    let c = client();
+    let bodies = seeded_map(&c, &s, "r1").await;
+    let r = c.get(s.url("/v1/maps/r1")).send().await.unwrap();
+    let etag = r.headers()["etag"].to_str().unwrap().to_owned();
+    assert_eq!(etag, "\"3\"");
+    let before: Value = r.json().await.unwrap();
+    let r = c
+        .get(s.url("/v1/maps/r1"))
+        .header("If-None-Match", &etag)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 304);
+    // an unrelated map is rejected, stored with its reason, and changes nothing
+    let poison = contribution(user_map(&world(901, 25), 901, 0.9, 0.1), "poison");
+    let r = post_contribution(&c, &s, "r1", BOB, "poison", &poison).await;
+    assert_eq!(r.status(), 422);
+    let p: Value = r.json().await.unwrap();
+    assert!(p["type"].as_str().unwrap().ends_with("/unmatched"), "{p}");
+    let (_, after) = get_json(&c, s.url("/v1/maps/r1")).await;
+    assert_eq!(after, before);
+    // keyset paging over the four contributions, two per page
+    let (_, page1) = get_json(&c, s.url("/v1/maps/r1/contributions?limit=2")).await;
+    let next = page1["next"].as_i64().expect("a second page");
+    let (_, page2) = get_json(
+        &c,
+        s.url(&format!("/v1/maps/r1/contributions?after={next}&limit=2")),
+    )
+    .await;
+    let rows: Vec<&Value> = page1["contributions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .chain(page2["contributions"].as_array().unwrap())
+        .collect();
+    let statuses: Vec<&str> = rows.iter().map(|x| x["status"].as_str().unwrap()).collect();
+    assert_eq!(statuses, ["accepted", "accepted", "accepted", "rejected"]);
+    let versions: Vec<Option<i64>> = rows.iter().map(|x| x["version"].as_i64()).collect();
+    assert_eq!(versions, [Some(1), Some(2), Some(3), None]);
+    assert_eq!(rows[3]["contributor"], "bob");
+    // roll back the second: the new version equals merging the first and third afresh
+    let second = rows[1]["id"].as_i64().unwrap();
+    let r = c
+        .delete(s.url(&format!("/v1/maps/r1/contributions/{second}")))
+        .bearer_auth(ALICE)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let fresh = TestServer::start().await;
+    create_map(&c, &fresh, "r1").await;
+    for (k, b) in [&bodies[0], &bodies[2]].into_iter().enumerate() {
+        let r = post_contribution(&c, &fresh, "r1", ALICE, &format!("k{k}"), b).await;
+        assert_eq!(r.status(), 201);
+    }
+    let (_, rolled) = get_json(&c, s.url("/v1/maps/r1")).await;
+    let (_, afresh) = get_json(&c, fresh.url("/v1/maps/r1")).await;
+    assert_eq!(
+        (rolled["version"].as_i64(), rolled["contributions"].as_i64()),
+        (Some(4), Some(2))
+    );
+    assert_eq!(rolled["transmitters"], afresh["transmitters"]);
+    // history is kept
+    let (status, v2) = get_json(&c, s.url("/v1/maps/r1/versions/2")).await;
+    assert_eq!((status.as_u16(), v2["version"].as_i64()), (200, Some(2)));
+    // a private map: 401 without a token, listed only with one
+    let r = c
+        .put(s.url("/v1/maps/secret"))
+        .bearer_auth(ALICE)
+        .json(&serde_json::json!({"private": true}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let r = c.get(s.url("/v1/maps/secret")).send().await.unwrap();
+    assert_eq!(r.status(), 401);
+    let names = |v: &Value| -> Vec<String> {
+        v["maps"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|m| m["name"].as_str().unwrap().to_owned())
+            .collect()
+    };
+    let (_, public) = get_json(&c, s.url("/v1/maps")).await;
+    assert_eq!(names(&public), ["r1"]);
+    let all: Value = c
+        .get(s.url("/v1/maps"))
+        .bearer_auth(OPERATOR)
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(names(&all), ["r1", "secret"]);
+    fresh.stop().await;
+    s.stop().await;
+}

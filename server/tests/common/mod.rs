@@ -245,3 +245,17 @@ pub async fn assert_versions_are_merges(
         parent = Some(expected);
     }
 }
+
+/// A map with three accepted contributions of world 1.
+pub async fn seeded_map(c: &reqwest::Client, s: &TestServer, name: &str) -> Vec<Value> {
+    create_map(c, s, name).await;
+    let truth = world(1, 25);
+    let mut bodies = Vec::new();
+    for (k, seed) in [11u64, 12, 13].into_iter().enumerate() {
+        let b = contribution(user_map(&truth, seed, 0.85, 0.1), &format!("run-{k}"));
+        let r = post_contribution(c, s, name, ALICE, &format!("{name}-{k}"), &b).await;
+        assert_eq!(r.status(), 201, "{}", r.text().await.unwrap());
+        bodies.push(b);
+    }
+    bodies
+}
