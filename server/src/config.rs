@@ -1,6 +1,6 @@
 //! Server configuration: every setting is a flag and an environment variable (clap).
 
-use clap::{Parser, ValueEnum};
+use clap::{Parser, Subcommand, ValueEnum};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
@@ -33,6 +33,18 @@ impl MatchScore {
     }
 }
 
+/// What `echomap-server` does besides serving.
+#[derive(Debug, Clone, PartialEq, Eq, Subcommand)]
+pub enum Command {
+    /// Copy every map, contribution and version of `--database-url` into the empty database
+    /// TARGET (e.g. `postgres://…` when one machine is no longer enough), with their ids, in one
+    /// transaction; then exit. Stop the servers writing to the source first.
+    CopyTo {
+        /// database URL (or SQLite path) to copy into; its schema is created if missing
+        target: String,
+    },
+}
+
 /// `echomap-server` settings.
 #[derive(Debug, Clone, Parser)]
 #[command(
@@ -41,6 +53,10 @@ impl MatchScore {
     about = "echomap map server: versioned crowd-sourced prior maps over HTTP"
 )]
 pub struct Config {
+    /// Without a command the server serves.
+    #[command(subcommand)]
+    pub command: Option<Command>,
+
     /// Address to listen on; port 0 picks a free port (the bound address is logged).
     #[arg(long, env = "ECHOMAP_LISTEN", default_value = "127.0.0.1:8080")]
     pub listen: SocketAddr,

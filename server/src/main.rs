@@ -1,5 +1,7 @@
 use anyhow::Result;
 use clap::Parser;
+use echomap_server::config::Command;
+use echomap_server::storage::{Kind, Storage, redact};
 use echomap_server::{Application, Config, init_tracing, shutdown_signal};
 use std::io::Write;
 
@@ -11,6 +13,9 @@ static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 async fn main() -> Result<()> {
     let config = Config::parse();
     init_tracing(config.log_format);
+    if let Some(Command::CopyTo { target }) = &config.command {
+        return copy_to(&config, target).await;
+    }
     let app = Application::build(config).await?;
     // handlers first: a SIGTERM sent as soon as the address line appears must be graceful
     let shutdown = shutdown_signal();
@@ -20,4 +25,35 @@ async fn main() -> Result<()> {
     println!("echomap-server listening on http://{addr}");
     std::io::stdout().flush()?;
     app.run_until(shutdown).await
+}
+
+/// `echomap-server --database-url SOURCE copy-to TARGET`.
+async fn copy_to(config: &Config, target: &str) -> Result<()> {
+    let source_url = &config.database_url;
+    if Kind::of_url(source_url) == Kind::Sqlite {
+        let path = source_url
+            .strip_prefix("sqlite://")
+            .or_else(|| source_url.strip_prefix("sqlite:"))
+            .unwrap_or(source_url);
+        let path = path.split('?').next().unwrap_or(path);
+        anyhow::ensure!(
+            std::path::Path::new(path).is_file(),
+            "the source database {path:?} does not exist"
+        );
+    }
+    let timeout = std::time::Duration::from_secs(config.database_timeout_s);
+    let source = Storage::open_with(source_url, 1, timeout).await?;
+    let into = Storage::open_with(target, 1, timeout).await?;
+    let copied = source.copy_into(&into).await?;
+    into.close().await;
+    source.close().await;
+    println!(
+        "copied {} maps, {} contributions and {} versions from {} to {}",
+        copied.maps,
+        copied.contributions,
+        copied.versions,
+        redact(source_url),
+        redact(target)
+    );
+    Ok(())
 }

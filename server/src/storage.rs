@@ -738,6 +738,240 @@ impl Storage {
     }
 }
 
+/// Rows of one table copied per transaction step of [`Storage::copy_into`].
+const COPY_PAGE: i64 = 500;
+
+#[derive(Debug, sqlx::FromRow)]
+struct MapCopy {
+    id: i64,
+    name: String,
+    private: bool,
+    created_ms: i64,
+    current_version: i64,
+}
+
+#[derive(Debug, sqlx::FromRow)]
+struct ContributionCopy {
+    id: i64,
+    map_id: i64,
+    contributor: String,
+    agent: Option<String>,
+    run: Option<String>,
+    traveled_m: Option<f64>,
+    idempotency_key: String,
+    request_sha256: String,
+    body: String,
+    received_ms: i64,
+    status: String,
+    reason: Option<String>,
+    transmitters: i64,
+    matched_version: Option<i64>,
+    transform: Option<String>,
+    inliers: Option<i64>,
+    score: Option<f64>,
+    merged: Option<i64>,
+    added: Option<i64>,
+    response_status: i64,
+    response_body: Vec<u8>,
+}
+
+#[derive(Debug, sqlx::FromRow)]
+struct VersionCopy {
+    map_id: i64,
+    number: i64,
+    parent: Option<i64>,
+    kind: String,
+    contribution_id: i64,
+    body: String,
+    encoding: String,
+    transmitters: i64,
+    created_ms: i64,
+}
+
+/// What [`Storage::copy_into`] copied.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Copied {
+    pub maps: usize,
+    pub contributions: usize,
+    pub versions: usize,
+}
+
+impl Storage {
+    /// Whether the database holds no map.
+    pub async fn is_empty(&self) -> Result<bool, sqlx::Error> {
+        let n: i64 = on_reader!(self, |pool| {
+            sqlx::query_scalar("SELECT COUNT(*) FROM maps")
+                .fetch_one(pool)
+                .await?
+        });
+        Ok(n == 0)
+    }
+
+    /// Copies every map, contribution and version, row for row with their ids (so stored
+    /// responses, ETags and contribution ids stay valid), into `target`, which must hold no
+    /// map — e.g. from SQLite to PostgreSQL when one machine is no longer enough. One write
+    /// transaction on the target: it gets everything or nothing. Version bodies are copied as
+    /// stored (full or delta). Stop the servers writing to `self` first.
+    pub async fn copy_into(&self, target: &Storage) -> anyhow::Result<Copied> {
+        use anyhow::Context;
+        anyhow::ensure!(
+            target.is_empty().await?,
+            "the target database already holds maps: copy only into an empty database"
+        );
+        let maps: Vec<MapCopy> = on_reader!(self, |pool| {
+            sqlx::query_as(
+                "SELECT id, name, private, created_ms, current_version FROM maps ORDER BY id",
+            )
+            .fetch_all(pool)
+            .await?
+        });
+        let mut contributions: Vec<ContributionCopy> = Vec::new();
+        loop {
+            let after = contributions.last().map_or(0, |c| c.id);
+            let page: Vec<ContributionCopy> = on_reader!(self, |pool| {
+                sqlx::query_as(
+                    "SELECT id, map_id, contributor, agent, run, traveled_m, idempotency_key,
+                            request_sha256, body, received_ms, status, reason, transmitters,
+                            matched_version, transform, inliers, score, merged, added,
+                            response_status, response_body
+                     FROM contributions WHERE id > $1 ORDER BY id LIMIT $2",
+                )
+                .bind(after)
+                .bind(COPY_PAGE)
+                .fetch_all(pool)
+                .await?
+            });
+            if page.is_empty() {
+                break;
+            }
+            contributions.extend(page);
+        }
+        let mut versions: Vec<VersionCopy> = Vec::new();
+        loop {
+            let (map_after, number_after) =
+                versions.last().map_or((0, 0), |v| (v.map_id, v.number));
+            let page: Vec<VersionCopy> = on_reader!(self, |pool| {
+                sqlx::query_as(
+                    "SELECT map_id, number, parent, kind, contribution_id, body, encoding,
+                            transmitters, created_ms
+                     FROM versions WHERE map_id > $1 OR (map_id = $1 AND number > $2)
+                     ORDER BY map_id, number LIMIT $3",
+                )
+                .bind(map_after)
+                .bind(number_after)
+                .bind(COPY_PAGE)
+                .fetch_all(pool)
+                .await?
+            });
+            if page.is_empty() {
+                break;
+            }
+            versions.extend(page);
+        }
+        // PostgreSQL's identity columns take given ids only when told to
+        let (insert_map, insert_contribution) = match target.kind() {
+            Kind::Sqlite => (
+                "INSERT INTO maps (id, name, private, created_ms, current_version)
+                 VALUES ($1, $2, $3, $4, $5)",
+                "INSERT INTO contributions (id, map_id, contributor, agent, run, traveled_m,
+                    idempotency_key, request_sha256, body, received_ms, status, reason, transmitters,
+                    matched_version, transform, inliers, score, merged, added, response_status,
+                    response_body)
+                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15, $16,
+                    $17, $18, $19, $20, $21)",
+            ),
+            Kind::Postgres => (
+                "INSERT INTO maps (id, name, private, created_ms, current_version)
+                 OVERRIDING SYSTEM VALUE VALUES ($1, $2, $3, $4, $5)",
+                "INSERT INTO contributions (id, map_id, contributor, agent, run, traveled_m,
+                    idempotency_key, request_sha256, body, received_ms, status, reason, transmitters,
+                    matched_version, transform, inliers, score, merged, added, response_status,
+                    response_body)
+                 OVERRIDING SYSTEM VALUE
+                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15, $16,
+                    $17, $18, $19, $20, $21)",
+            ),
+        };
+        let copied = Copied {
+            maps: maps.len(),
+            contributions: contributions.len(),
+            versions: versions.len(),
+        };
+        let result: Result<(), CommitError> = async {
+            in_write_tx!(target, |tx, _lock| {
+                for m in &maps {
+                    sqlx::query(insert_map)
+                        .bind(m.id)
+                        .bind(&m.name)
+                        .bind(m.private)
+                        .bind(m.created_ms)
+                        .bind(m.current_version)
+                        .execute(&mut *tx)
+                        .await?;
+                }
+                for c in &contributions {
+                    sqlx::query(insert_contribution)
+                        .bind(c.id)
+                        .bind(c.map_id)
+                        .bind(&c.contributor)
+                        .bind(&c.agent)
+                        .bind(&c.run)
+                        .bind(c.traveled_m)
+                        .bind(&c.idempotency_key)
+                        .bind(&c.request_sha256)
+                        .bind(&c.body)
+                        .bind(c.received_ms)
+                        .bind(&c.status)
+                        .bind(&c.reason)
+                        .bind(c.transmitters)
+                        .bind(c.matched_version)
+                        .bind(&c.transform)
+                        .bind(c.inliers)
+                        .bind(c.score)
+                        .bind(c.merged)
+                        .bind(c.added)
+                        .bind(c.response_status)
+                        .bind(&c.response_body)
+                        .execute(&mut *tx)
+                        .await?;
+                }
+                for v in &versions {
+                    sqlx::query(
+                        "INSERT INTO versions (map_id, number, parent, kind, contribution_id, body,
+                            encoding, transmitters, created_ms)
+                         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
+                    )
+                    .bind(v.map_id)
+                    .bind(v.number)
+                    .bind(v.parent)
+                    .bind(&v.kind)
+                    .bind(v.contribution_id)
+                    .bind(&v.body)
+                    .bind(&v.encoding)
+                    .bind(v.transmitters)
+                    .bind(v.created_ms)
+                    .execute(&mut *tx)
+                    .await?;
+                }
+                if target.kind() == Kind::Postgres {
+                    // the next generated ids continue after the copied ones
+                    for table in [
+                        "SELECT setval(pg_get_serial_sequence('maps', 'id'), (SELECT COALESCE(MAX(id), 0) + 1 FROM maps), false)",
+                        "SELECT setval(pg_get_serial_sequence('contributions', 'id'), (SELECT COALESCE(MAX(id), 0) + 1 FROM contributions), false)",
+                    ] {
+                        sqlx::query(table).execute(&mut *tx).await?;
+                    }
+                }
+                tx.commit().await?;
+                Ok(())
+            })
+        }
+        .await;
+        result.context("writing the copy (nothing was written)")?;
+        Ok(copied)
+    }
+}
+
 /// The URL without its password, for error messages and logs.
 pub fn redact(url: &str) -> String {
     match (url.find("://"), url.rfind('@')) {

@@ -520,3 +520,180 @@ async fn the_api_on_postgres() {
     fresh.stop().await;
     s.stop().await;
 }
+
+/// Runs `echomap-server --database-url SOURCE copy-to TARGET`; returns success and stdout+stderr.
+fn copy_to(source: &str, target: &str) -> (bool, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_echomap-server"))
+        .args(["--database-url", source, "copy-to", target])
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("run echomap-server copy-to");
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out.status.success(), text)
+}
+
+/// Everything a client can read of the maps `names`, as served by `s`.
+async fn everything(c: &reqwest::Client, s: &TestServer, names: &[&str]) -> Vec<Value> {
+    let mut out = Vec::new();
+    let list: Value = c
+        .get(s.url("/v1/maps"))
+        .bearer_auth(OPERATOR)
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    out.push(list);
+    for name in names {
+        let get = |path: String| c.get(s.url(&path)).bearer_auth(OPERATOR).send();
+        let cur: Value = get(format!("/v1/maps/{name}"))
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        for n in 1..=cur["version"].as_i64().unwrap() {
+            let v: Value = get(format!("/v1/maps/{name}/versions/{n}"))
+                .await
+                .unwrap()
+                .json()
+                .await
+                .unwrap();
+            out.push(v);
+        }
+        out.push(cur);
+        let page: Value = get(format!("/v1/maps/{name}/contributions?limit=1000"))
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        out.push(page);
+    }
+    out
+}
+
+/// When one machine is no longer enough: a SQLite database with history (accepted, rejected
+/// and rolled-back contributions, delta-encoded versions, a private map) moves to PostgreSQL
+/// with `copy-to`, and a server on the copy answers exactly as before — stored responses
+/// replayed byte for byte — and goes on from the copied ids; and back to SQLite.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_sqlite_database_moves_to_postgres_and_back() {
+    let Some(pg) = Postgres::start() else { return };
+    let target = pg.create_database("moved").await;
+    let c = client();
+    let old = TestServer::start().await;
+    let bodies = seeded_map(&c, &old, "r1").await;
+    let poison = contribution(user_map(&world(901, 25), 901, 0.9, 0.1), "poison");
+    let r = post_contribution(&c, &old, "r1", BOB, "poison", &poison).await;
+    assert_eq!(r.status(), 422);
+    let (_, page) = get_json(&c, old.url("/v1/maps/r1/contributions")).await;
+    let second = page["contributions"][1]["id"].as_i64().unwrap();
+    let r = c
+        .delete(old.url(&format!("/v1/maps/r1/contributions/{second}")))
+        .bearer_auth(ALICE)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let r = c
+        .put(old.url("/v1/maps/secret"))
+        .bearer_auth(ALICE)
+        .json(&serde_json::json!({"private": true}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    // 8 uploads queue behind the held merge lock and are committed in group commits, which
+    // store all versions but their last as deltas
+    let truth = world(2, 20);
+    let secret = old.state.map_ref("secret").await.unwrap().id;
+    let lock = old.state.map_lock(secret);
+    let held = lock.lock().await;
+    let mut tasks = Vec::new();
+    for k in 0..8u64 {
+        let (c, url) = (c.clone(), old.url("/v1/maps/secret/contributions"));
+        let b = contribution(user_map(&truth, 40 + k, 0.85, 0.1), &format!("s{k}"));
+        tasks.push(tokio::spawn(async move {
+            let r = c
+                .post(url)
+                .bearer_auth(ALICE)
+                .header("Idempotency-Key", format!("s{k}"))
+                .json(&b)
+                .send()
+                .await
+                .unwrap();
+            r.status().as_u16()
+        }));
+    }
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    drop(held);
+    for t in tasks {
+        assert_eq!(t.await.unwrap(), 201);
+    }
+    let source = sqlx::SqlitePool::connect_with(
+        sqlx::sqlite::SqliteConnectOptions::new()
+            .filename(&old.db)
+            .read_only(true),
+    )
+    .await
+    .unwrap();
+    let deltas: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM versions WHERE encoding = 'delta'")
+        .fetch_one(&source)
+        .await
+        .unwrap();
+    source.close().await;
+    assert!(deltas >= 1, "no delta-encoded version to copy");
+    let before = everything(&c, &old, &["r1", "secret"]).await;
+    let first_reply = post_contribution(&c, &old, "r1", ALICE, "r1-0", &bodies[0]).await;
+    assert_eq!(first_reply.status(), 201);
+    let first_reply = first_reply.bytes().await.unwrap();
+
+    // a missing source is refused and creates nothing
+    let missing = old.dir.path().join("missing.db").display().to_string();
+    let (ok, text) = copy_to(&missing, &target);
+    assert!(!ok && text.contains("does not exist"), "{text}");
+    assert!(!std::path::Path::new(&missing).exists());
+    let (ok, text) = copy_to(&old.db.display().to_string(), &target);
+    assert!(ok, "{text}");
+    assert!(
+        text.contains("copied 2 maps, 12 contributions and 12 versions"),
+        "{text}"
+    );
+    // into a database that already holds maps: refused, nothing written
+    let (ok, text) = copy_to(&old.db.display().to_string(), &target);
+    assert!(!ok && text.contains("already holds maps"), "{text}");
+
+    let moved = TestServer::start_with(|cfg| cfg.database_url = target.clone()).await;
+    assert_eq!(everything(&c, &moved, &["r1", "secret"]).await, before);
+    // a retry reaching the new server gets the stored response byte for byte
+    let replay = post_contribution(&c, &moved, "r1", ALICE, "r1-0", &bodies[0]).await;
+    assert_eq!(replay.headers()["idempotent-replayed"], "true");
+    assert_eq!(replay.bytes().await.unwrap(), first_reply);
+    // new writes continue after the copied ids
+    let b = contribution(user_map(&world(1, 25), 77, 0.85, 0.1), "after");
+    let r = post_contribution(&c, &moved, "r1", ALICE, "after-move", &b).await;
+    assert_eq!(r.status(), 201);
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(
+        (v["contribution"].as_i64(), v["version"].as_i64()),
+        (Some(13), Some(5))
+    );
+
+    // and back: PostgreSQL → a new SQLite file
+    let back = tempfile::tempdir().unwrap();
+    let back_db = back.path().join("back.db").display().to_string();
+    let after = everything(&c, &moved, &["r1", "secret"]).await;
+    let (ok, text) = copy_to(&target, &back_db);
+    assert!(ok, "{text}");
+    let returned = TestServer::start_with(|cfg| cfg.database_url = back_db.clone()).await;
+    assert_eq!(everything(&c, &returned, &["r1", "secret"]).await, after);
+    returned.stop().await;
+    moved.stop().await;
+    old.stop().await;
+}
