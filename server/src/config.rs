@@ -42,6 +42,9 @@ pub enum Command {
     CopyTo {
         /// database URL (or SQLite path) to copy into; its schema is created if missing
         target: String,
+        /// rows read from the source at a time (memory: this many uploads or versions)
+        #[arg(long, default_value_t = crate::storage::COPY_PAGE, value_parser = clap::value_parser!(u32).range(1..))]
+        page_rows: u32,
     },
 }
 

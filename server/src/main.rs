@@ -13,8 +13,8 @@ static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 async fn main() -> Result<()> {
     let config = Config::parse();
     init_tracing(config.log_format);
-    if let Some(Command::CopyTo { target }) = &config.command {
-        return copy_to(&config, target).await;
+    if let Some(Command::CopyTo { target, page_rows }) = &config.command {
+        return copy_to(&config, target, *page_rows).await;
     }
     let app = Application::build(config).await?;
     // handlers first: a SIGTERM sent as soon as the address line appears must be graceful
@@ -28,7 +28,7 @@ async fn main() -> Result<()> {
 }
 
 /// `echomap-server --database-url SOURCE copy-to TARGET`.
-async fn copy_to(config: &Config, target: &str) -> Result<()> {
+async fn copy_to(config: &Config, target: &str, page_rows: u32) -> Result<()> {
     let source_url = &config.database_url;
     if Kind::of_url(source_url) == Kind::Sqlite {
         let path = source_url
@@ -44,7 +44,7 @@ async fn copy_to(config: &Config, target: &str) -> Result<()> {
     let timeout = std::time::Duration::from_secs(config.database_timeout_s);
     let source = Storage::open_with(source_url, 1, timeout).await?;
     let into = Storage::open_with(target, 1, timeout).await?;
-    let copied = source.copy_into(&into).await?;
+    let copied = source.copy_into(&into, page_rows).await?;
     into.close().await;
     source.close().await;
     println!(

@@ -738,8 +738,9 @@ impl Storage {
     }
 }
 
-/// Rows of one table copied per transaction step of [`Storage::copy_into`].
-const COPY_PAGE: i64 = 500;
+/// Rows read from the source per step of [`Storage::copy_into`] (the `copy-to --page-rows`
+/// default).
+pub const COPY_PAGE: u32 = 500;
 
 #[derive(Debug, sqlx::FromRow)]
 struct MapCopy {
@@ -810,64 +811,16 @@ impl Storage {
     /// Copies every map, contribution and version, row for row with their ids (so stored
     /// responses, ETags and contribution ids stay valid), into `target`, which must hold no
     /// map — e.g. from SQLite to PostgreSQL when one machine is no longer enough. One write
-    /// transaction on the target: it gets everything or nothing. Version bodies are copied as
-    /// stored (full or delta). Stop the servers writing to `self` first.
-    pub async fn copy_into(&self, target: &Storage) -> anyhow::Result<Copied> {
+    /// transaction on the target, filled page by page (`page_rows` rows in memory at a
+    /// time): it gets everything or nothing. Version bodies are copied as stored (full or
+    /// delta). Stop the servers writing to `self` first.
+    pub async fn copy_into(&self, target: &Storage, page_rows: u32) -> anyhow::Result<Copied> {
         use anyhow::Context;
+        let page_rows = i64::from(page_rows.max(1));
         anyhow::ensure!(
             target.is_empty().await?,
             "the target database already holds maps: copy only into an empty database"
         );
-        let maps: Vec<MapCopy> = on_reader!(self, |pool| {
-            sqlx::query_as(
-                "SELECT id, name, private, created_ms, current_version FROM maps ORDER BY id",
-            )
-            .fetch_all(pool)
-            .await?
-        });
-        let mut contributions: Vec<ContributionCopy> = Vec::new();
-        loop {
-            let after = contributions.last().map_or(0, |c| c.id);
-            let page: Vec<ContributionCopy> = on_reader!(self, |pool| {
-                sqlx::query_as(
-                    "SELECT id, map_id, contributor, agent, run, traveled_m, idempotency_key,
-                            request_sha256, body, received_ms, status, reason, transmitters,
-                            matched_version, transform, inliers, score, merged, added,
-                            response_status, response_body
-                     FROM contributions WHERE id > $1 ORDER BY id LIMIT $2",
-                )
-                .bind(after)
-                .bind(COPY_PAGE)
-                .fetch_all(pool)
-                .await?
-            });
-            if page.is_empty() {
-                break;
-            }
-            contributions.extend(page);
-        }
-        let mut versions: Vec<VersionCopy> = Vec::new();
-        loop {
-            let (map_after, number_after) =
-                versions.last().map_or((0, 0), |v| (v.map_id, v.number));
-            let page: Vec<VersionCopy> = on_reader!(self, |pool| {
-                sqlx::query_as(
-                    "SELECT map_id, number, parent, kind, contribution_id, body, encoding,
-                            transmitters, created_ms
-                     FROM versions WHERE map_id > $1 OR (map_id = $1 AND number > $2)
-                     ORDER BY map_id, number LIMIT $3",
-                )
-                .bind(map_after)
-                .bind(number_after)
-                .bind(COPY_PAGE)
-                .fetch_all(pool)
-                .await?
-            });
-            if page.is_empty() {
-                break;
-            }
-            versions.extend(page);
-        }
         // PostgreSQL's identity columns take given ids only when told to
         let (insert_map, insert_contribution) = match target.kind() {
             Kind::Sqlite => (
@@ -892,13 +845,20 @@ impl Storage {
                     $17, $18, $19, $20, $21)",
             ),
         };
-        let copied = Copied {
-            maps: maps.len(),
-            contributions: contributions.len(),
-            versions: versions.len(),
+        let mut copied = Copied {
+            maps: 0,
+            contributions: 0,
+            versions: 0,
         };
         let result: Result<(), CommitError> = async {
             in_write_tx!(target, |tx, _lock| {
+                let maps: Vec<MapCopy> = on_reader!(self, |pool| {
+                    sqlx::query_as(
+                        "SELECT id, name, private, created_ms, current_version FROM maps ORDER BY id",
+                    )
+                    .fetch_all(pool)
+                    .await?
+                });
                 for m in &maps {
                     sqlx::query(insert_map)
                         .bind(m.id)
@@ -909,49 +869,88 @@ impl Storage {
                         .execute(&mut *tx)
                         .await?;
                 }
-                for c in &contributions {
-                    sqlx::query(insert_contribution)
-                        .bind(c.id)
-                        .bind(c.map_id)
-                        .bind(&c.contributor)
-                        .bind(&c.agent)
-                        .bind(&c.run)
-                        .bind(c.traveled_m)
-                        .bind(&c.idempotency_key)
-                        .bind(&c.request_sha256)
-                        .bind(&c.body)
-                        .bind(c.received_ms)
-                        .bind(&c.status)
-                        .bind(&c.reason)
-                        .bind(c.transmitters)
-                        .bind(c.matched_version)
-                        .bind(&c.transform)
-                        .bind(c.inliers)
-                        .bind(c.score)
-                        .bind(c.merged)
-                        .bind(c.added)
-                        .bind(c.response_status)
-                        .bind(&c.response_body)
+                copied.maps = maps.len();
+                let mut after = 0;
+                loop {
+                    let page: Vec<ContributionCopy> = on_reader!(self, |pool| {
+                        sqlx::query_as(
+                            "SELECT id, map_id, contributor, agent, run, traveled_m, idempotency_key,
+                                    request_sha256, body, received_ms, status, reason, transmitters,
+                                    matched_version, transform, inliers, score, merged, added,
+                                    response_status, response_body
+                             FROM contributions WHERE id > $1 ORDER BY id LIMIT $2",
+                        )
+                        .bind(after)
+                        .bind(page_rows)
+                        .fetch_all(pool)
+                        .await?
+                    });
+                    let Some(last) = page.last() else { break };
+                    after = last.id;
+                    for c in &page {
+                        sqlx::query(insert_contribution)
+                            .bind(c.id)
+                            .bind(c.map_id)
+                            .bind(&c.contributor)
+                            .bind(&c.agent)
+                            .bind(&c.run)
+                            .bind(c.traveled_m)
+                            .bind(&c.idempotency_key)
+                            .bind(&c.request_sha256)
+                            .bind(&c.body)
+                            .bind(c.received_ms)
+                            .bind(&c.status)
+                            .bind(&c.reason)
+                            .bind(c.transmitters)
+                            .bind(c.matched_version)
+                            .bind(&c.transform)
+                            .bind(c.inliers)
+                            .bind(c.score)
+                            .bind(c.merged)
+                            .bind(c.added)
+                            .bind(c.response_status)
+                            .bind(&c.response_body)
+                            .execute(&mut *tx)
+                            .await?;
+                    }
+                    copied.contributions += page.len();
+                }
+                let mut after = (0, 0);
+                loop {
+                    let page: Vec<VersionCopy> = on_reader!(self, |pool| {
+                        sqlx::query_as(
+                            "SELECT map_id, number, parent, kind, contribution_id, body, encoding,
+                                    transmitters, created_ms
+                             FROM versions WHERE map_id > $1 OR (map_id = $1 AND number > $2)
+                             ORDER BY map_id, number LIMIT $3",
+                        )
+                        .bind(after.0)
+                        .bind(after.1)
+                        .bind(page_rows)
+                        .fetch_all(pool)
+                        .await?
+                    });
+                    let Some(last) = page.last() else { break };
+                    after = (last.map_id, last.number);
+                    for v in &page {
+                        sqlx::query(
+                            "INSERT INTO versions (map_id, number, parent, kind, contribution_id,
+                                body, encoding, transmitters, created_ms)
+                             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
+                        )
+                        .bind(v.map_id)
+                        .bind(v.number)
+                        .bind(v.parent)
+                        .bind(&v.kind)
+                        .bind(v.contribution_id)
+                        .bind(&v.body)
+                        .bind(&v.encoding)
+                        .bind(v.transmitters)
+                        .bind(v.created_ms)
                         .execute(&mut *tx)
                         .await?;
-                }
-                for v in &versions {
-                    sqlx::query(
-                        "INSERT INTO versions (map_id, number, parent, kind, contribution_id, body,
-                            encoding, transmitters, created_ms)
-                         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
-                    )
-                    .bind(v.map_id)
-                    .bind(v.number)
-                    .bind(v.parent)
-                    .bind(&v.kind)
-                    .bind(v.contribution_id)
-                    .bind(&v.body)
-                    .bind(&v.encoding)
-                    .bind(v.transmitters)
-                    .bind(v.created_ms)
-                    .execute(&mut *tx)
-                    .await?;
+                    }
+                    copied.versions += page.len();
                 }
                 if target.kind() == Kind::Postgres {
                     // the next generated ids continue after the copied ones

@@ -521,10 +521,19 @@ async fn the_api_on_postgres() {
     s.stop().await;
 }
 
-/// Runs `echomap-server --database-url SOURCE copy-to TARGET`; returns success and stdout+stderr.
+/// Runs `echomap-server --database-url SOURCE copy-to TARGET --page-rows 5` (pages of 5 rows,
+/// so the copy spans several pages and the versions' pages cross from one map to the next);
+/// returns success and stdout+stderr.
 fn copy_to(source: &str, target: &str) -> (bool, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_echomap-server"))
-        .args(["--database-url", source, "copy-to", target])
+        .args([
+            "--database-url",
+            source,
+            "copy-to",
+            target,
+            "--page-rows",
+            "5",
+        ])
         .env("RUST_LOG", "warn")
         .output()
         .expect("run echomap-server copy-to");
