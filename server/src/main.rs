@@ -1,7 +1,7 @@
 use anyhow::Result;
 use clap::Parser;
 use echomap_server::config::Command;
-use echomap_server::storage::{Kind, Storage, redact};
+use echomap_server::storage::{Storage, redact, sqlite_file};
 use echomap_server::{Application, Config, init_tracing, shutdown_signal};
 use std::io::Write;
 
@@ -30,15 +30,12 @@ async fn main() -> Result<()> {
 /// `echomap-server --database-url SOURCE copy-to TARGET`.
 async fn copy_to(config: &Config, target: &str, page_rows: u32) -> Result<()> {
     let source_url = &config.database_url;
-    if Kind::of_url(source_url) == Kind::Sqlite {
-        let path = source_url
-            .strip_prefix("sqlite://")
-            .or_else(|| source_url.strip_prefix("sqlite:"))
-            .unwrap_or(source_url);
-        let path = path.split('?').next().unwrap_or(path);
+    // opening a SQLite database creates a missing file: refuse a source that is not there
+    if let Some(path) = sqlite_file(source_url) {
         anyhow::ensure!(
-            std::path::Path::new(path).is_file(),
-            "the source database {path:?} does not exist"
+            path.is_file(),
+            "the source database {} does not exist",
+            path.display()
         );
     }
     let timeout = std::time::Duration::from_secs(config.database_timeout_s);

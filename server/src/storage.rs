@@ -298,6 +298,14 @@ fn sqlite_options(url: &str) -> Result<SqliteConnectOptions, sqlx::Error> {
 /// `--database-timeout-s` default).
 pub const PG_CONNECT_TIMEOUT: Duration = Duration::from_secs(60);
 
+/// The file a SQLite URL or path names (`None` for PostgreSQL or an unparsable URL).
+pub fn sqlite_file(url: &str) -> Option<std::path::PathBuf> {
+    if Kind::of_url(url) != Kind::Sqlite {
+        return None;
+    }
+    Some(sqlite_options(url).ok()?.get_filename().to_path_buf())
+}
+
 /// Connections a PostgreSQL pool keeps for commits, besides `read_connections` for reads.
 pub const PG_WRITE_CONNECTIONS: u32 = 4;
 
@@ -1001,6 +1009,16 @@ mod tests {
         assert_eq!(Kind::of_url("sqlite://echomap.db"), Kind::Sqlite);
         assert_eq!(Kind::of_url("/var/lib/echomap/echomap.db"), Kind::Sqlite);
         assert_eq!(Kind::of_url("postgres.db"), Kind::Sqlite);
+        let file = |u: &str| sqlite_file(u).map(|p| p.display().to_string());
+        assert_eq!(
+            file("sqlite://data/echomap.db").as_deref(),
+            Some("data/echomap.db")
+        );
+        assert_eq!(
+            file("/var/lib/echomap.db").as_deref(),
+            Some("/var/lib/echomap.db")
+        );
+        assert_eq!(file("postgres://u@h/db"), None);
     }
 
     #[test]
