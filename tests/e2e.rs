@@ -11,7 +11,6 @@ mod common;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
-use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::Command;
 
 fn agent_binary() -> PathBuf {
@@ -91,26 +90,7 @@ async fn three_agents_share_a_map_through_a_real_server() {
     let tokens = common::token_file(dir.path(), &[]);
     let agent_token = dir.path().join("agent-token");
     std::fs::write(&agent_token, format!("# agent token\n{}\n", common::ALICE)).unwrap();
-    let mut server = Command::new(env!("CARGO_BIN_EXE_echomap-server"))
-        .args(["--listen", "127.0.0.1:0", "--database-url"])
-        .arg(dir.path().join("e2e.db"))
-        .arg("--token-file")
-        .arg(&tokens)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .kill_on_drop(true)
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(server.stdout.take().unwrap())
-        .read_line(&mut line)
-        .await
-        .unwrap();
-    let base = line
-        .trim()
-        .strip_prefix("echomap-server listening on ")
-        .unwrap()
-        .to_owned();
+    let (mut server, base) = common::spawn_server_process(dir.path().join("e2e.db"), &tokens).await;
     let c = common::client();
 
     let mut firsts = Vec::new();

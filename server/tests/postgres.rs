@@ -169,10 +169,20 @@ impl Drop for Postgres {
     }
 }
 
-async fn get_json(c: &reqwest::Client, url: String) -> (reqwest::StatusCode, Value) {
-    let r = c.get(url).send().await.unwrap();
+/// Sends `request`; its status and JSON body.
+async fn json_of(request: reqwest::RequestBuilder) -> (reqwest::StatusCode, Value) {
+    let r = request.send().await.unwrap();
     let status = r.status();
     (status, r.json().await.unwrap())
+}
+
+async fn get_json(c: &reqwest::Client, url: String) -> (reqwest::StatusCode, Value) {
+    json_of(c.get(url)).await
+}
+
+/// `GET url` with the operator's token (which may read private maps).
+async fn get_json_as_operator(c: &reqwest::Client, url: String) -> Value {
+    json_of(c.get(url).bearer_auth(OPERATOR)).await.1
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -507,15 +517,7 @@ async fn the_api_on_postgres() {
     };
     let (_, public) = get_json(&c, s.url("/v1/maps")).await;
     assert_eq!(names(&public), ["r1"]);
-    let all: Value = c
-        .get(s.url("/v1/maps"))
-        .bearer_auth(OPERATOR)
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let all = get_json_as_operator(&c, s.url("/v1/maps")).await;
     assert_eq!(names(&all), ["r1", "secret"]);
     fresh.stop().await;
     s.stop().await;
@@ -547,42 +549,15 @@ fn copy_to(source: &str, target: &str) -> (bool, String) {
 
 /// Everything a client can read of the maps `names`, as served by `s`.
 async fn everything(c: &reqwest::Client, s: &TestServer, names: &[&str]) -> Vec<Value> {
-    let mut out = Vec::new();
-    let list: Value = c
-        .get(s.url("/v1/maps"))
-        .bearer_auth(OPERATOR)
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
-    out.push(list);
+    let get = |path: String| get_json_as_operator(c, s.url(&path));
+    let mut out = vec![get("/v1/maps".into()).await];
     for name in names {
-        let get = |path: String| c.get(s.url(&path)).bearer_auth(OPERATOR).send();
-        let cur: Value = get(format!("/v1/maps/{name}"))
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
+        let cur = get(format!("/v1/maps/{name}")).await;
         for n in 1..=cur["version"].as_i64().unwrap() {
-            let v: Value = get(format!("/v1/maps/{name}/versions/{n}"))
-                .await
-                .unwrap()
-                .json()
-                .await
-                .unwrap();
-            out.push(v);
+            out.push(get(format!("/v1/maps/{name}/versions/{n}")).await);
         }
         out.push(cur);
-        let page: Value = get(format!("/v1/maps/{name}/contributions?limit=1000"))
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
-        out.push(page);
+        out.push(get(format!("/v1/maps/{name}/contributions?limit=1000")).await);
     }
     out
 }
