@@ -4,6 +4,7 @@
 
 use crate::auth::TokenStore;
 use crate::config::Config;
+use crate::heads::ReplicaCache;
 use crate::state::{AppState, SharedState};
 use crate::storage::Storage;
 use anyhow::Context;
@@ -75,6 +76,13 @@ impl Application {
             tracing::info!("shutting down: no new connections, finishing in-flight requests");
             let _ = signalled_tx.send(());
         });
+        // `--replica-cache listen` on PostgreSQL: the task that hears heads move
+        let listening = match state.storage.pg_side_pool() {
+            Some(pool) if state.config.replica_cache == ReplicaCache::Listen => Some(tokio::spawn(
+                crate::heads::listen(pool, state.heads.clone(), Duration::from_secs(1)),
+            )),
+            _ => None,
+        };
         let serving = tokio::spawn(async move { serve.await });
         let mut serving = serving;
         tokio::select! {
@@ -86,6 +94,9 @@ impl Application {
                 tracing::warn!("grace period over; dropping remaining connections");
                 serving.abort();
             }
+        }
+        if let Some(task) = listening {
+            task.abort();
         }
         state.storage.close().await;
         tracing::info!("database closed");

@@ -124,6 +124,15 @@ pub struct Config {
     #[arg(long, env = "ECHOMAP_DATABASE_TIMEOUT_S", default_value_t = 60)]
     pub database_timeout_s: u64,
 
+    /// PostgreSQL only: how a replica knows its cached current version of a map is still
+    /// current. `check`: reads the stored head on every GET (one indexed read); a version
+    /// another replica committed is served at once. `listen`: trusts the cache until a
+    /// notification (LISTEN/NOTIFY on one extra connection) says the head moved; no read per
+    /// GET, but another replica's commit is served only after its notification has arrived
+    /// (milliseconds), and while the listening connection is down every GET reads the head.
+    #[arg(long, env = "ECHOMAP_REPLICA_CACHE", value_enum, default_value_t = crate::heads::ReplicaCache::Check)]
+    pub replica_cache: crate::heads::ReplicaCache,
+
     /// Seconds in-flight requests get to finish after SIGTERM/SIGINT.
     #[arg(long, env = "ECHOMAP_SHUTDOWN_GRACE_S", default_value_t = 30)]
     pub shutdown_grace_s: u64,

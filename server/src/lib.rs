@@ -8,6 +8,7 @@ pub mod auth;
 pub mod config;
 pub mod delta;
 pub mod error;
+pub mod heads;
 pub mod http;
 pub mod merge;
 pub mod metrics;

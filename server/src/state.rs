@@ -4,6 +4,7 @@
 use crate::auth::{TokenStore, WriteLimiter};
 use crate::config::Config;
 use crate::error::ApiError;
+use crate::heads::{Heads, ReplicaCache};
 use crate::storage::{Kind, Storage};
 use bytes::Bytes;
 use echomap_shared::map::TransmitterMap;
@@ -46,6 +47,8 @@ pub struct AppState {
     current: RwLock<HashMap<i64, Arc<CachedVersion>>>,
     /// map name → row, for maps known to exist (names are never deleted or reused)
     known: RwLock<HashMap<String, MapRef>>,
+    /// heads announced by PostgreSQL (`--replica-cache listen`)
+    pub heads: Arc<Heads>,
 }
 
 pub type SharedState = Arc<AppState>;
@@ -86,6 +89,7 @@ impl AppState {
             in_flight: Mutex::default(),
             current: RwLock::default(),
             known: RwLock::default(),
+            heads: Arc::default(),
         }
     }
 
@@ -158,20 +162,33 @@ impl AppState {
 
     /// The current version of a map, from the cache or the database. On PostgreSQL other
     /// replicas commit to the same database, so the cached version is served only while the
-    /// stored `current_version` still equals it (one indexed read per request); on SQLite this
-    /// process is the only writer and the cache is authoritative.
+    /// stored `current_version` still equals it: read on every request (`--replica-cache
+    /// check`, one indexed read), or only when no listening session vouches for it
+    /// (`listen`, see [`Heads`]). On SQLite this process is the only writer and the cache is
+    /// authoritative.
     pub async fn current(&self, row: &MapRef) -> Result<Arc<CachedVersion>, ApiError> {
         let cached = self.current.read().expect("poisoned").get(&row.id).cloned();
+        let listen = self.config.replica_cache == ReplicaCache::Listen;
         if let Some(c) = cached {
             let fresh = match self.storage.kind() {
                 Kind::Sqlite => true,
-                Kind::Postgres => self.storage.current_version(row.id).await? == Some(c.version),
+                Kind::Postgres if listen && self.heads.vouches(row.id, c.version) => true,
+                Kind::Postgres => {
+                    let session = self.heads.session();
+                    metrics::counter!("echomap_head_reads_total").increment(1);
+                    let head = self.storage.current_version(row.id).await?;
+                    if head == Some(c.version) && listen {
+                        self.heads.verified(row.id, c.version, session);
+                    }
+                    head == Some(c.version)
+                }
             };
             if fresh {
                 return Ok(c);
             }
             metrics::counter!("echomap_cache_reloads_total").increment(1);
         }
+        let session = self.heads.session();
         let fresh = self
             .storage
             .map(&row.name)
@@ -195,7 +212,11 @@ impl AppState {
                 &v.body,
             )?)
         };
-        Ok(self.install(row.id, cached))
+        let installed = self.install(row.id, cached);
+        if listen && self.storage.kind() == Kind::Postgres {
+            self.heads.verified(row.id, fresh.current_version, session);
+        }
+        Ok(installed)
     }
 
     /// Drops the cached version of a map (another writer moved it).

@@ -364,6 +364,20 @@ impl Storage {
         Ok(Storage { backend })
     }
 
+    /// A pool of one connection to the same PostgreSQL database, connecting on first use
+    /// (for a connection held by a listener, apart from the request pools); `None` on SQLite.
+    pub fn pg_side_pool(&self) -> Option<PgPool> {
+        match &self.backend {
+            Backend::Postgres(pool) => Some(
+                PgPoolOptions::new()
+                    .max_connections(1)
+                    .acquire_timeout(pool.options().get_acquire_timeout())
+                    .connect_lazy_with((*pool.connect_options()).clone()),
+            ),
+            Backend::Sqlite { .. } => None,
+        }
+    }
+
     pub fn kind(&self) -> Kind {
         match self.backend {
             Backend::Sqlite { .. } => Kind::Sqlite,

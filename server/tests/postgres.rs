@@ -681,3 +681,139 @@ async fn a_sqlite_database_moves_to_postgres_and_back() {
     moved.stop().await;
     old.stop().await;
 }
+
+/// The value of the unlabelled metric `name` on `base`'s `/metrics` (0 while it was never set).
+async fn metric(c: &reqwest::Client, base: &str, name: &str) -> f64 {
+    let text = c
+        .get(format!("{base}/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse().ok())
+        .unwrap_or(0.0)
+}
+
+/// Polls `base`'s map `name` until it serves `version` (at most 10 s); how long that took.
+async fn await_version(c: &reqwest::Client, base: &str, name: &str, version: i64) -> Duration {
+    let start = std::time::Instant::now();
+    loop {
+        let (status, cur) = get_json(c, format!("{base}/v1/maps/{name}")).await;
+        assert_eq!(status, 200);
+        if cur["version"].as_i64() == Some(version) {
+            return start.elapsed();
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "{base} still serves version {} of {name}, not {version}",
+            cur["version"]
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn listening_replicas_serve_each_others_commits_without_reading_the_head() {
+    let Some(pg) = Postgres::start() else { return };
+    let url = pg.create_database("listening").await;
+    let dir = tempfile::tempdir().unwrap();
+    let tokens = token_file(dir.path(), &[]);
+    let listen = [("ECHOMAP_REPLICA_CACHE", "listen")];
+    let ((_a, a), (_b, b)) = tokio::join!(
+        spawn_server_process_with(&url, &tokens, &listen),
+        spawn_server_process_with(&url, &tokens, &listen)
+    );
+    let c = client();
+    let r = c
+        .put(format!("{a}/v1/maps/hall"))
+        .bearer_auth(OPERATOR)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let truth = world(3, 25);
+    let mut k = 0u64;
+    let mut upload = |base: String| {
+        k += 1;
+        let body = contribution(user_map(&truth, 7000 + k, 0.8, 0.1), &format!("l{k}"));
+        let c = c.clone();
+        async move {
+            let r = c
+                .post(format!("{base}/v1/maps/hall/contributions"))
+                .bearer_auth(ALICE)
+                .header("Idempotency-Key", format!("listen-{k}"))
+                .json(&body)
+                .send()
+                .await
+                .unwrap();
+            assert_eq!(r.status(), 201);
+            r.json::<Value>().await.unwrap()["version"]
+                .as_i64()
+                .unwrap()
+        }
+    };
+    // both replicas listen (the task starts beside the server)
+    for base in [&a, &b] {
+        let start = std::time::Instant::now();
+        while metric(&c, base, "echomap_head_listen_sessions_total").await < 1.0 {
+            assert!(
+                start.elapsed() < Duration::from_secs(10),
+                "{base} never listened"
+            );
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    }
+    assert_eq!(upload(a.clone()).await, 1);
+    await_version(&c, &b, "hall", 1).await;
+    // B serves its cached version 1 on and on without reading the head once it has been
+    // found current (in `check` mode every one of these GETs reads it)
+    let reads = metric(&c, &b, "echomap_head_reads_total").await;
+    for _ in 0..20 {
+        let (_, cur) = get_json(&c, format!("{b}/v1/maps/hall")).await;
+        assert_eq!(cur["version"].as_i64(), Some(1));
+    }
+    let more = metric(&c, &b, "echomap_head_reads_total").await - reads;
+    assert!(
+        more <= 1.0,
+        "{more} head reads for 20 GETs of a vouched version"
+    );
+    // A commits version 2: the notification reaches B, which then serves it
+    assert_eq!(upload(a.clone()).await, 2);
+    let late = await_version(&c, &b, "hall", 2).await;
+    eprintln!("B served A's version 2 after {late:?}");
+    // and the other way round
+    let (_, cur) = get_json(&c, format!("{a}/v1/maps/hall")).await;
+    assert_eq!(cur["version"].as_i64(), Some(2));
+    assert_eq!(upload(b.clone()).await, 3);
+    await_version(&c, &a, "hall", 3).await;
+
+    // the database ends both listening sessions: the replicas read the head again until they
+    // listen anew, and a commit made meanwhile is not lost on the other replica
+    let db = sqlx::PgPool::connect(&url).await.unwrap();
+    let ended: Vec<bool> = sqlx::query_scalar(
+        "SELECT pg_terminate_backend(pid) FROM pg_stat_activity
+         WHERE datname = 'listening' AND query LIKE 'LISTEN%'",
+    )
+    .fetch_all(&db)
+    .await
+    .unwrap();
+    assert_eq!(ended, [true, true], "one listening session per replica");
+    assert_eq!(upload(a.clone()).await, 4);
+    await_version(&c, &b, "hall", 4).await;
+    for base in [&a, &b] {
+        let start = std::time::Instant::now();
+        while metric(&c, base, "echomap_head_listen_sessions_total").await < 2.0 {
+            assert!(
+                start.elapsed() < Duration::from_secs(10),
+                "{base} did not listen again"
+            );
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    }
+    assert_eq!(upload(b.clone()).await, 5);
+    await_version(&c, &a, "hall", 5).await;
+    db.close().await;
+}

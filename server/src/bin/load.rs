@@ -12,7 +12,8 @@
 //! replicas, connection and uploader `i` use replica `i mod N`.
 
 use anyhow::{Context, Result, bail};
-use clap::{Parser, Subcommand};
+use clap::{Parser, Subcommand, ValueEnum};
+use echomap_server::heads::ReplicaCache;
 use echomap_server::synth;
 use std::path::PathBuf;
 use std::process::Stdio;
@@ -61,6 +62,10 @@ struct Cli {
     /// server processes on the one database (several need PostgreSQL)
     #[arg(long, default_value_t = 1)]
     replicas: usize,
+    /// the servers' `--replica-cache` (PostgreSQL): `check` reads the head per GET, `listen`
+    /// trusts the cache until a notification says the head moved
+    #[arg(long, value_enum, default_value_t = ReplicaCache::Check)]
+    replica_cache: ReplicaCache,
     /// seed of the synthetic maps
     #[arg(long, default_value_t = 1)]
     seed: u64,
@@ -236,6 +241,13 @@ async fn bench(cli: &Cli) -> Result<()> {
                     .arg(&db)
                     .arg("--token-file")
                     .arg(&token_file)
+                    .arg("--replica-cache")
+                    .arg(
+                        cli.replica_cache
+                            .to_possible_value()
+                            .expect("no skipped variants")
+                            .get_name(),
+                    )
                     .env("RUST_LOG", "warn")
                     .env("ECHOMAP_RATE_LIMIT", "1000000")
                     .env("ECHOMAP_RATE_BURST", "1000000"),

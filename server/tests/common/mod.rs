@@ -172,6 +172,15 @@ pub async fn spawn_server_process(
     database: impl AsRef<std::ffi::OsStr>,
     tokens: &Path,
 ) -> (tokio::process::Child, String) {
+    spawn_server_process_with(database, tokens, &[]).await
+}
+
+/// [`spawn_server_process`] with more settings as `ECHOMAP_*` environment variables.
+pub async fn spawn_server_process_with(
+    database: impl AsRef<std::ffi::OsStr>,
+    tokens: &Path,
+    env: &[(&str, &str)],
+) -> (tokio::process::Child, String) {
     use tokio::io::AsyncBufReadExt;
     let mut child = tokio::process::Command::new(env!("CARGO_BIN_EXE_echomap-server"))
         .args(["--listen", "127.0.0.1:0", "--database-url"])
@@ -181,6 +190,7 @@ pub async fn spawn_server_process(
         .env("RUST_LOG", "warn")
         .env("ECHOMAP_RATE_LIMIT", "100000")
         .env("ECHOMAP_RATE_BURST", "100000")
+        .envs(env.iter().copied())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::null())
         .kill_on_drop(true)
