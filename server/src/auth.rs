@@ -177,18 +177,26 @@ impl TokenStore {
 #[derive(Debug)]
 pub struct WriteLimiter {
     limiter: DefaultKeyedRateLimiter<String>,
+    /// ms between two writes at the sustained rate
+    pub emission_ms: f64,
+    /// how far ahead of now a contributor's next allowed write may lie (burst − 1 emissions)
+    pub tolerance_ms: f64,
 }
 
 impl WriteLimiter {
     pub fn new(per_second: u32, burst: u32) -> Self {
         let per_second = NonZeroU32::new(per_second.max(1)).expect("≥ 1");
         let burst = NonZeroU32::new(burst.max(1)).expect("≥ 1");
+        let emission_ms = 1000.0 / f64::from(per_second.get());
         WriteLimiter {
             limiter: RateLimiter::keyed(Quota::per_second(per_second).allow_burst(burst)),
+            emission_ms,
+            tolerance_ms: emission_ms * f64::from(burst.get() - 1),
         }
     }
 
-    /// 429 with the wait in whole seconds (at least 1) when the contributor is over its quota.
+    /// 429 with the wait in whole seconds (at least 1) when the contributor is over its quota
+    /// in this process.
     pub fn check(&self, who: &Principal) -> Result<(), ApiError> {
         self.limiter
             .check_key(&who.contributor)

@@ -93,6 +93,29 @@ impl AppState {
         }
     }
 
+    /// The write rate limit: per process on SQLite (the only process), shared by every
+    /// replica on PostgreSQL (one upsert per write, [`Storage::take_write_cell`]); 429 with the
+    /// wait in whole seconds (at least 1).
+    pub async fn check_rate(&self, who: &crate::auth::Principal) -> Result<(), ApiError> {
+        match self.storage.kind() {
+            Kind::Sqlite => self.limiter.check(who),
+            Kind::Postgres => match self
+                .storage
+                .take_write_cell(
+                    &who.contributor,
+                    self.limiter.emission_ms,
+                    self.limiter.tolerance_ms,
+                )
+                .await?
+            {
+                None => Ok(()),
+                Some(wait_ms) => Err(ApiError::RateLimited {
+                    retry_after_s: (wait_ms / 1000.0).ceil().max(1.0) as u64,
+                }),
+            },
+        }
+    }
+
     /// The lock serializing merges of one map in this process.
     pub fn map_lock(&self, map_id: i64) -> Arc<tokio::sync::Mutex<()>> {
         self.map_locks

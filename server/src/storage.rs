@@ -476,6 +476,44 @@ impl Storage {
         })
     }
 
+    /// PostgreSQL: takes one write from `contributor`'s allowance shared by every replica
+    /// (GCRA on the database's clock: an emission interval of `emission_ms`, a burst tolerance
+    /// of `tolerance_ms`). `None` when the write is allowed, else how many ms until it would
+    /// be. On SQLite (one process) the caller's own limiter decides: always `None`.
+    pub async fn take_write_cell(
+        &self,
+        contributor: &str,
+        emission_ms: f64,
+        tolerance_ms: f64,
+    ) -> Result<Option<f64>, sqlx::Error> {
+        const NOW: &str = "(EXTRACT(EPOCH FROM clock_timestamp()) * 1000)::DOUBLE PRECISION";
+        let Backend::Postgres(pool) = &self.backend else {
+            return Ok(None);
+        };
+        let taken: Option<f64> = sqlx::query_scalar(sqlx::AssertSqlSafe(format!(
+            "INSERT INTO write_limits AS w (contributor, tat_ms) VALUES ($1, {NOW} + $2)
+             ON CONFLICT (contributor) DO UPDATE SET tat_ms = GREATEST(w.tat_ms, {NOW}) + $2
+                 WHERE w.tat_ms - {NOW} <= $3
+             RETURNING tat_ms"
+        )))
+        .bind(contributor)
+        .bind(emission_ms)
+        .bind(tolerance_ms)
+        .fetch_optional(pool)
+        .await?;
+        if taken.is_some() {
+            return Ok(None);
+        }
+        let wait: f64 = sqlx::query_scalar(sqlx::AssertSqlSafe(format!(
+            "SELECT tat_ms - {NOW} - $2 FROM write_limits WHERE contributor = $1"
+        )))
+        .bind(contributor)
+        .bind(tolerance_ms)
+        .fetch_one(pool)
+        .await?;
+        Ok(Some(wait.max(0.0)))
+    }
+
     /// The version number a map is at, as stored (for replicas: another process may have
     /// committed since this one cached it).
     pub async fn current_version(&self, map_id: i64) -> Result<Option<i64>, sqlx::Error> {

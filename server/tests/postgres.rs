@@ -817,3 +817,51 @@ async fn listening_replicas_serve_each_others_commits_without_reading_the_head()
     await_version(&c, &a, "hall", 5).await;
     db.close().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_write_rate_limit_is_shared_by_the_replicas() {
+    let Some(pg) = Postgres::start() else { return };
+    let url = pg.create_database("limits").await;
+    let dir = tempfile::tempdir().unwrap();
+    let tokens = token_file(dir.path(), &[]);
+    // 1 write per second, bursts of 3: per contributor, whichever replica takes the write
+    let limit = [("ECHOMAP_RATE_LIMIT", "1"), ("ECHOMAP_RATE_BURST", "3")];
+    let ((_a, a), (_b, b)) = tokio::join!(
+        spawn_server_process_with(&url, &tokens, &limit),
+        spawn_server_process_with(&url, &tokens, &limit)
+    );
+    let c = client();
+    let put = |base: &str, token: &'static str| {
+        c.put(format!("{base}/v1/maps/limited"))
+            .bearer_auth(token)
+            .send()
+    };
+    let start = std::time::Instant::now();
+    let mut answers = Vec::new();
+    for k in 0..8 {
+        let r = put([&a, &b][k % 2], ALICE).await.unwrap();
+        answers.push((r.status().as_u16(), r.headers().get("retry-after").cloned()));
+    }
+    let elapsed = start.elapsed().as_secs_f64();
+    let allowed = answers.iter().filter(|(s, _)| *s != 429).count();
+    // a limiter per replica would allow 3 on each, 6 in all
+    assert!(
+        allowed >= 3 && allowed as f64 <= 3.0 + elapsed.floor(),
+        "{allowed} of 8 writes allowed in {elapsed:.2} s: {answers:?}"
+    );
+    assert!(answers[..3].iter().all(|(s, _)| *s == 201 || *s == 200));
+    for (status, retry) in &answers {
+        if *status == 429 {
+            let secs: u64 = retry.as_ref().unwrap().to_str().unwrap().parse().unwrap();
+            assert_eq!(
+                secs, 1,
+                "one write per second: the next one within a second"
+            );
+        }
+    }
+    // another contributor has its own allowance
+    assert_eq!(put(&b, BOB).await.unwrap().status(), 200);
+    // and the allowance comes back at the sustained rate
+    tokio::time::sleep(Duration::from_millis(1100)).await;
+    assert_eq!(put(&a, ALICE).await.unwrap().status(), 200);
+}

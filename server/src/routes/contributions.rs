@@ -99,7 +99,7 @@ pub async fn post_contribution(
     {
         return lookup(s);
     }
-    app.limiter.check(&who)?;
+    app.check_rate(&who).await?;
     let _in_flight = app.begin(row.id, &who.contributor, key.as_str())?;
     // the first request with this key may have completed between the lookup and `begin`
     if let Some(s) = app
@@ -264,7 +264,7 @@ pub async fn delete_contribution(
         detail: "contribution id must be an integer".into(),
     })?;
     let row = app.map_ref(name.as_str()).await?;
-    app.limiter.check(&who)?;
+    app.check_rate(&who).await?;
     let lock = app.map_lock(row.id);
     let _merging = lock.lock().await;
     loop {

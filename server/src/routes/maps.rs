@@ -115,7 +115,7 @@ pub async fn put_map(
 ) -> ApiResult<Response> {
     let name = MapName::parse(&name)?;
     let who = authorize_write(&app, &name, &headers)?;
-    app.limiter.check(&who)?;
+    app.check_rate(&who).await?;
     let settings: CreateMap = if body.iter().all(u8::is_ascii_whitespace) {
         CreateMap::default()
     } else {
@@ -252,7 +252,7 @@ pub async fn match_map(
     let row = app.map_ref(name.as_str()).await?;
     authorize_read(&app, &row, &headers)?;
     if let Some(who) = app.tokens.from_headers(&headers)? {
-        app.limiter.check(&who)?;
+        app.check_rate(&who).await?;
     }
     let req: MatchRequest = parse_json(&body)?;
     let user = crate::routes::contributions::validate_map(req.map, "map")?;
