@@ -486,7 +486,8 @@ impl Storage {
         emission_ms: f64,
         tolerance_ms: f64,
     ) -> Result<Option<f64>, sqlx::Error> {
-        const NOW: &str = "(EXTRACT(EPOCH FROM clock_timestamp()) * 1000)::DOUBLE PRECISION";
+        // one instant per statement (the replicas' own clocks play no part)
+        const NOW: &str = "(EXTRACT(EPOCH FROM statement_timestamp()) * 1000)::DOUBLE PRECISION";
         let Backend::Postgres(pool) = &self.backend else {
             return Ok(None);
         };

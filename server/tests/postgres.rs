@@ -715,6 +715,18 @@ async fn await_version(c: &reqwest::Client, base: &str, name: &str, version: i64
     }
 }
 
+/// Polls `base` until it has opened `sessions` listening sessions (at most 10 s).
+async fn await_listening(c: &reqwest::Client, base: &str, sessions: f64) {
+    let start = std::time::Instant::now();
+    while metric(c, base, "echomap_head_listen_sessions_total").await < sessions {
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "{base} opened fewer than {sessions} listening sessions in 10 s"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn listening_replicas_serve_each_others_commits_without_reading_the_head() {
     let Some(pg) = Postgres::start() else { return };
@@ -757,14 +769,7 @@ async fn listening_replicas_serve_each_others_commits_without_reading_the_head()
     };
     // both replicas listen (the task starts beside the server)
     for base in [&a, &b] {
-        let start = std::time::Instant::now();
-        while metric(&c, base, "echomap_head_listen_sessions_total").await < 1.0 {
-            assert!(
-                start.elapsed() < Duration::from_secs(10),
-                "{base} never listened"
-            );
-            tokio::time::sleep(Duration::from_millis(10)).await;
-        }
+        await_listening(&c, base, 1.0).await;
     }
     assert_eq!(upload(a.clone()).await, 1);
     await_version(&c, &b, "hall", 1).await;
@@ -804,14 +809,7 @@ async fn listening_replicas_serve_each_others_commits_without_reading_the_head()
     assert_eq!(upload(a.clone()).await, 4);
     await_version(&c, &b, "hall", 4).await;
     for base in [&a, &b] {
-        let start = std::time::Instant::now();
-        while metric(&c, base, "echomap_head_listen_sessions_total").await < 2.0 {
-            assert!(
-                start.elapsed() < Duration::from_secs(10),
-                "{base} did not listen again"
-            );
-            tokio::time::sleep(Duration::from_millis(10)).await;
-        }
+        await_listening(&c, base, 2.0).await;
     }
     assert_eq!(upload(b.clone()).await, 5);
     await_version(&c, &a, "hall", 5).await;
