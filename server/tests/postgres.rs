@@ -185,34 +185,48 @@ async fn get_json_as_operator(c: &reqwest::Client, url: String) -> Value {
     json_of(c.get(url).bearer_auth(OPERATOR)).await.1
 }
 
+/// Two `echomap-server` processes (replicas) on the new database `database` of `pg`, with the
+/// test tokens and `env` settings, started at once (the migrator's advisory lock serializes
+/// their migrations); the database URL, the processes with their base URLs, and the directory
+/// holding the token file.
+async fn two_replicas(
+    pg: &Postgres,
+    database: &str,
+    env: &[(&str, &str)],
+) -> (
+    String,
+    [(tokio::process::Child, String); 2],
+    tempfile::TempDir,
+) {
+    let url = pg.create_database(database).await;
+    let dir = tempfile::tempdir().unwrap();
+    let tokens = token_file(dir.path(), &[]);
+    let (a, b) = tokio::join!(
+        spawn_server_process_with(&url, &tokens, env),
+        spawn_server_process_with(&url, &tokens, env)
+    );
+    (url, [a, b], dir)
+}
+
+/// `PUT /v1/maps/{name}` on `base` with `token`; the answer.
+async fn put_map(c: &reqwest::Client, base: &str, name: &str, token: &str) -> reqwest::Response {
+    c.put(format!("{base}/v1/maps/{name}"))
+        .bearer_auth(token)
+        .send()
+        .await
+        .unwrap()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_replicas_on_one_postgres_lose_no_update() {
     let Some(pg) = Postgres::start() else { return };
-    let url = pg.create_database("replicas").await;
-    let dir = tempfile::tempdir().unwrap();
-    let tokens = token_file(dir.path(), &[]);
     // both replicas apply the migrations at once: the migrator's advisory lock serializes them
-    let ((_a, a), (_b, b)) = tokio::join!(
-        spawn_server_process(&url, &tokens),
-        spawn_server_process(&url, &tokens)
-    );
+    let (url, [(_a, a), (_b, b)], _dir) = two_replicas(&pg, "replicas", &[]).await;
     let replicas = [a.clone(), b.clone()];
     let c = client();
-    let r = c
-        .put(format!("{a}/v1/maps/crowd"))
-        .bearer_auth(OPERATOR)
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 201);
+    assert_eq!(put_map(&c, &a, "crowd", OPERATOR).await.status(), 201);
     // the other replica sees the map at once and does not create it again
-    let r = c
-        .put(format!("{b}/v1/maps/crowd"))
-        .bearer_auth(OPERATOR)
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 200);
+    assert_eq!(put_map(&c, &b, "crowd", OPERATOR).await.status(), 200);
 
     // 16 uploaders × 6 uploads, each upload to the other replica than the one before
     let truth = world(3, 25);
@@ -730,22 +744,10 @@ async fn await_listening(c: &reqwest::Client, base: &str, sessions: f64) {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn listening_replicas_serve_each_others_commits_without_reading_the_head() {
     let Some(pg) = Postgres::start() else { return };
-    let url = pg.create_database("listening").await;
-    let dir = tempfile::tempdir().unwrap();
-    let tokens = token_file(dir.path(), &[]);
     let listen = [("ECHOMAP_REPLICA_CACHE", "listen")];
-    let ((_a, a), (_b, b)) = tokio::join!(
-        spawn_server_process_with(&url, &tokens, &listen),
-        spawn_server_process_with(&url, &tokens, &listen)
-    );
+    let (url, [(_a, a), (_b, b)], _dir) = two_replicas(&pg, "listening", &listen).await;
     let c = client();
-    let r = c
-        .put(format!("{a}/v1/maps/hall"))
-        .bearer_auth(OPERATOR)
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 201);
+    assert_eq!(put_map(&c, &a, "hall", OPERATOR).await.status(), 201);
     let truth = world(3, 25);
     let mut k = 0u64;
     let mut upload = |base: String| {
@@ -819,25 +821,14 @@ async fn listening_replicas_serve_each_others_commits_without_reading_the_head()
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_write_rate_limit_is_shared_by_the_replicas() {
     let Some(pg) = Postgres::start() else { return };
-    let url = pg.create_database("limits").await;
-    let dir = tempfile::tempdir().unwrap();
-    let tokens = token_file(dir.path(), &[]);
     // 1 write per second, bursts of 3: per contributor, whichever replica takes the write
     let limit = [("ECHOMAP_RATE_LIMIT", "1"), ("ECHOMAP_RATE_BURST", "3")];
-    let ((_a, a), (_b, b)) = tokio::join!(
-        spawn_server_process_with(&url, &tokens, &limit),
-        spawn_server_process_with(&url, &tokens, &limit)
-    );
+    let (_url, [(_a, a), (_b, b)], _dir) = two_replicas(&pg, "limits", &limit).await;
     let c = client();
-    let put = |base: &str, token: &'static str| {
-        c.put(format!("{base}/v1/maps/limited"))
-            .bearer_auth(token)
-            .send()
-    };
     let start = std::time::Instant::now();
     let mut answers = Vec::new();
     for k in 0..8 {
-        let r = put([&a, &b][k % 2], ALICE).await.unwrap();
+        let r = put_map(&c, [&a, &b][k % 2], "limited", ALICE).await;
         answers.push((r.status().as_u16(), r.headers().get("retry-after").cloned()));
     }
     let elapsed = start.elapsed().as_secs_f64();
@@ -858,8 +849,8 @@ async fn the_write_rate_limit_is_shared_by_the_replicas() {
         }
     }
     // another contributor has its own allowance
-    assert_eq!(put(&b, BOB).await.unwrap().status(), 200);
+    assert_eq!(put_map(&c, &b, "limited", BOB).await.status(), 200);
     // and the allowance comes back at the sustained rate
     tokio::time::sleep(Duration::from_millis(1100)).await;
-    assert_eq!(put(&a, ALICE).await.unwrap().status(), 200);
+    assert_eq!(put_map(&c, &a, "limited", ALICE).await.status(), 200);
 }
