@@ -38,8 +38,9 @@ pub struct CrowdSpec {
     pub map: String,
     pub token_file: Option<PathBuf>,
     pub parallel: usize,
-    /// further `run` flags (filter settings)
-    pub run_args: Vec<String>,
+    /// configuration keys of every agent (a partial table, see `config`), handed to each
+    /// process as a configuration file
+    pub config: serde_json::Value,
     /// per-user output directories are created below this
     pub out: PathBuf,
     /// show spinners
@@ -65,8 +66,18 @@ pub struct UserResult {
     pub dir: PathBuf,
 }
 
+/// Writes a partial configuration table as a file for `run --config`.
+pub fn write_config(config: &serde_json::Value, path: &Path) -> Result<PathBuf> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    std::fs::write(path, serde_json::to_string_pretty(config)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    Ok(path.to_path_buf())
+}
+
 /// The `run` arguments of one user (without server flags).
-pub fn run_args(user: &User, out: &Path, extra: &[String]) -> Vec<String> {
+pub fn run_args(user: &User, out: &Path, config: &Path) -> Vec<String> {
     let mut a: Vec<String> = vec!["run".into()];
     match &user.source {
         Source::Scenario { scenario, track } => {
@@ -77,7 +88,7 @@ pub fn run_args(user: &User, out: &Path, extra: &[String]) -> Vec<String> {
     }
     a.extend(["--seed".into(), user.seed.to_string()]);
     a.extend(["--out".into(), out.display().to_string(), "--quiet".into()]);
-    a.extend(extra.iter().cloned());
+    a.extend(["--config".into(), config.display().to_string()]);
     a
 }
 
@@ -187,14 +198,22 @@ pub fn run_crowd(spec: &CrowdSpec, users: &[User]) -> Vec<UserResult> {
     };
     let style = ProgressStyle::with_template("{spinner} {prefix:>8} [{elapsed_precise}] {msg}")
         .expect("static template");
+    let config = write_config(&spec.config, &spec.out.join("agent-config.json"));
     in_order(users, spec.parallel, |user| {
+        let config = match &config {
+            Ok(path) => path,
+            Err(e) => {
+                let dir = spec.out.join(&user.name);
+                return collect(user, &dir, Err(anyhow::anyhow!("{e:#}")), 0.0);
+            }
+        };
         let bar = multi.add(ProgressBar::new_spinner());
         bar.set_style(style.clone());
         bar.set_prefix(user.name.clone());
         bar.set_message("running");
         bar.enable_steady_tick(Duration::from_millis(200));
         let dir = spec.out.join(&user.name);
-        let mut args = run_args(user, &dir, &spec.run_args);
+        let mut args = run_args(user, &dir, config);
         args.extend([
             "--server".into(),
             spec.server.clone(),

@@ -2,12 +2,25 @@
 //! directory), a crowd of agent processes building a map of the indoor scenario one after
 //! another, then the reference user alone and with the crowd's map; results table, plots.
 
-use crate::cli::{DemoArgs, user_tracks};
 use crate::evaluate::Curves;
 use crate::experiment::{ExperimentSpec, cooperative_scenario};
+use crate::sim::user_tracks;
 use anyhow::Result;
+use std::path::PathBuf;
 
-pub fn demo(a: &DemoArgs) -> Result<()> {
+/// What the demo runs.
+#[derive(Debug, Clone)]
+pub struct DemoSpec {
+    /// seed of the simulations and filters
+    pub seed: u64,
+    /// number of contributing users (indoor tracks user01, user02, …)
+    pub users: usize,
+    /// particles of every agent
+    pub particles: usize,
+    pub out: PathBuf,
+}
+
+pub fn demo(a: &DemoSpec) -> Result<()> {
     let tracks = user_tracks("indoor")?;
     anyhow::ensure!(
         a.users >= 1 && a.users <= tracks.len(),
@@ -21,7 +34,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
     let mut drawn = vec!["reference".to_string()];
     drawn.extend(tracks[..a.users].iter().cloned());
     crate::plot::draw_scenario(&scenario, &drawn, "reference", &a.out.join("scenario.png"))?;
-    let particles = vec!["--particles".to_string(), a.particles.to_string()];
+    let particles = serde_json::json!({ "particles": a.particles });
     let spec = ExperimentSpec {
         exe: std::env::current_exe()?,
         server: None,
@@ -29,12 +42,12 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         runs: 1,
         first_seed: a.seed,
         parallel: 2,
-        crowd_args: particles.clone(),
-        reference_args: particles,
+        crowd_config: particles.clone(),
+        reference_config: particles,
         out: a.out.clone(),
         progress: true,
         match_visibility_weight: 1.0,
-        match_score: echomap_server::config::MatchScore::Msac,
+        match_score: echomap_shared::matching::MatchScore::Msac,
         merge_absorb_chi2: 0.0,
     };
     println!(

@@ -1,9 +1,10 @@
-//! `echomap-agent evaluate`: Monte-Carlo evaluation over seeds, as in seed 002 Fig. 8 and
-//! seed 001 Fig. 5 — mean MAE, the RMSE over runs of the weighted-mean estimate, and 5th/95th
+//! `echomap-agent evaluate`: Monte-Carlo evaluation over seeds, as in Gentner et al. 2016
+//! Fig. 8 and Ulmschneider et al. 2021 Fig. 5 — mean MAE, the RMSE over runs of the weighted-mean estimate, and 5th/95th
 //! percentiles, per snapshot against the (true) travelled distance.
 
-use crate::cli::{EvaluateArgs, ScenarioSource, load_scenario};
+use crate::config::RunConfig;
 use crate::eval::percentile;
+use crate::filter::Association;
 use crate::run::run_filter;
 use crate::sim::simulate::{SimOptions, simulate};
 use anyhow::Result;
@@ -135,13 +136,25 @@ pub fn write_curves(all: &[Curves], title: &str, dir: &std::path::Path) -> Resul
     Ok(())
 }
 
-pub fn evaluate(a: &EvaluateArgs) -> Result<()> {
-    let scenario = load_scenario(&ScenarioSource {
-        scenario: a.scenario.clone(),
-        toa_only: a.toa_only,
-    })?;
+/// What `evaluate` runs: M seeds of one track of a scenario, per association method.
+#[derive(Debug, Clone)]
+pub struct EvaluateSpec {
+    pub scenario: crate::sim::Scenario,
+    pub track: String,
+    pub toa_only: bool,
+    pub seeds: u64,
+    pub first_seed: u64,
+    /// association methods to compare (empty: the configuration's)
+    pub compare: Vec<Association>,
+    /// the filter's configuration (resolved against the scenario's sensor profile)
+    pub config: RunConfig,
+    pub out: std::path::PathBuf,
+}
+
+pub fn evaluate(a: &EvaluateSpec) -> Result<()> {
+    let scenario = &a.scenario;
     let methods = if a.compare.is_empty() {
-        vec![a.filter.association]
+        vec![a.config.association.method]
     } else {
         a.compare.clone()
     };
@@ -160,7 +173,7 @@ pub fn evaluate(a: &EvaluateArgs) -> Result<()> {
         for seed in a.first_seed..a.first_seed + a.seeds {
             bar.set_message(format!("{method:?} seed {seed}"));
             let sim = simulate(
-                &scenario,
+                scenario,
                 &a.track,
                 SimOptions {
                     seed,
@@ -168,7 +181,7 @@ pub fn evaluate(a: &EvaluateArgs) -> Result<()> {
                 },
             )?;
             let v0 = sim.truth.poses.first().map(|p| p.speed_mps).unwrap_or(0.0);
-            let mut cfg = a.filter.config(seed, v0)?;
+            let mut cfg = a.config.filter_config(seed, v0);
             cfg.association = method;
             let start = std::time::Instant::now();
             let out = run_filter(&sim.log, Some(&sim.truth), cfg, false)?;
@@ -202,7 +215,7 @@ pub fn evaluate(a: &EvaluateArgs) -> Result<()> {
         &all,
         &format!(
             "{} / {}, {} runs, {} particles",
-            scenario.name, a.track, a.seeds, a.filter.particles
+            scenario.name, a.track, a.seeds, a.config.particles
         ),
         &a.out,
     )?;

@@ -23,15 +23,16 @@ pub struct ExperimentSpec {
     pub runs: u64,
     pub first_seed: u64,
     pub parallel: usize,
-    /// `run` flags of contributors and of the reference user
-    pub crowd_args: Vec<String>,
-    pub reference_args: Vec<String>,
+    /// configuration keys of contributors and of the reference user (partial tables, see
+    /// `config`; each agent adds its log's sensor profile beneath them)
+    pub crowd_config: serde_json::Value,
+    pub reference_config: serde_json::Value,
     pub out: PathBuf,
     pub progress: bool,
     /// the started loopback server's `--match-visibility-weight`, `--match-score` and
     /// `--merge-absorb-chi2`
     pub match_visibility_weight: f64,
-    pub match_score: echomap_server::config::MatchScore,
+    pub match_score: echomap_shared::matching::MatchScore,
     pub merge_absorb_chi2: f64,
 }
 
@@ -150,7 +151,7 @@ fn build_map(
         token_file: s.token_file.clone(),
         // contributors build the map one after another (seed 001 §V)
         parallel: 1,
-        run_args: spec.crowd_args.clone(),
+        config: spec.crowd_config.clone(),
         out: dir.to_path_buf(),
         progress: spec.progress,
     };
@@ -178,9 +179,14 @@ fn run_references(
     jobs: &[(String, Option<PathBuf>)],
     dir: &Path,
 ) -> Vec<Result<Reference>> {
+    let config =
+        match crowd::write_config(&spec.reference_config, &dir.join("reference-config.json")) {
+            Ok(path) => path,
+            Err(e) => return jobs.iter().map(|_| Err(anyhow::anyhow!("{e:#}"))).collect(),
+        };
     crowd::in_order(jobs, spec.parallel, |(label, prior)| {
         let d = dir.join(format!("reference-{label}"));
-        let mut args = crowd::run_args(reference, &d, &spec.reference_args);
+        let mut args = crowd::run_args(reference, &d, &config);
         if let Some(p) = prior {
             args.extend(["--prior".into(), p.display().to_string()]);
         }

@@ -1,15 +1,16 @@
 //! echomap agent library: the scenario simulator (`sim`), the Channel-SLAM filter
 //! (`filter`), evaluation (`eval`, `evaluate`), the map-server client (`client`, `remote`),
 //! crowds of agent processes (`crowd`), the cooperative experiment (`experiment`), the demo,
-//! plotting and the CLI.
+//! plotting, and the run configuration (`config`). The command line lives in the binary.
 
-pub mod cli;
 pub mod client;
+pub mod config;
 pub mod crowd;
 pub mod demo;
 pub mod eval;
 pub mod evaluate;
 pub mod experiment;
+pub mod files;
 pub mod filter;
 pub mod local_server;
 pub mod mrclam;

@@ -4,7 +4,6 @@
 //! The fetched map is saved as `prior.json` beside the run's outputs and handed to the
 //! filter (matched while running, then used for association: `filter::prior`).
 
-use crate::cli::ServerArgs;
 use crate::client::{ClientConfig, Contribution, Fetched, MapClient, UploadOutcome, parse_prior};
 use crate::run::RunOutput;
 use anyhow::{Context, Result};
@@ -45,19 +44,28 @@ pub fn connect(
     Ok((client, rt))
 }
 
+/// Which server and map a run talks to.
+#[derive(Debug, Clone)]
+pub struct RemoteSpec {
+    /// base URL of the map server
+    pub server: String,
+    /// map name on the server
+    pub map: String,
+    /// file holding the bearer token
+    pub token_file: Option<std::path::PathBuf>,
+    /// label of this agent sent with the upload
+    pub contributor: String,
+}
+
 impl Remote {
-    pub fn from_args(a: &ServerArgs) -> Result<Option<Self>> {
-        let Some(base) = &a.server else {
-            return Ok(None);
-        };
-        let map = a.map.clone().context("--server needs --map")?;
-        let (client, rt) = connect(base, a.token_file.as_deref())?;
-        Ok(Some(Remote {
+    pub fn connect(a: &RemoteSpec) -> Result<Self> {
+        let (client, rt) = connect(&a.server, a.token_file.as_deref())?;
+        Ok(Remote {
             client,
-            map,
+            map: a.map.clone(),
             contributor: a.contributor.clone(),
             rt,
-        }))
+        })
     }
 
     /// Fetches the current prior map into `dir/prior.json` (304 keeps the cached copy).

@@ -224,6 +224,105 @@ fn run_writes_map_track_and_plots() {
 }
 
 #[test]
+fn the_configuration_comes_from_the_sensor_profile_a_file_and_flags_and_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = dir.path().join("sim");
+    let st = agent()
+        .args([
+            "simulate",
+            "--scenario",
+            "indoor",
+            "--track",
+            "user01",
+            "--out",
+        ])
+        .arg(&sim)
+        .output()
+        .unwrap();
+    assert!(st.status.success());
+    let file = dir.path().join("mine.toml");
+    std::fs::write(
+        &file,
+        "[motion]\nheading_noise_rad_per_sqrt_s = 0.02\n[association]\nwindow = 3\n",
+    )
+    .unwrap();
+    let print = |extra: &[&str]| {
+        let st = agent()
+            .args(["config", "print", "--log"])
+            .arg(&sim)
+            .arg("--config")
+            .arg(&file)
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(
+            st.status.success(),
+            "{}",
+            String::from_utf8_lossy(&st.stderr)
+        );
+        String::from_utf8(st.stdout).unwrap()
+    };
+    let text = print(&["--set", "association.window=5", "--particles", "77"]);
+    let line = |key: &str| {
+        text.lines()
+            .find(|l| l.starts_with(&format!("{key} = ")))
+            .unwrap_or_else(|| panic!("no {key} in\n{text}"))
+            .to_string()
+    };
+    // the simulator's profile states its noise floors 1.5× as drawn (0.25 m)
+    assert!(line("distance_floor_m").contains("= 0.375"), "{text}");
+    assert!(
+        line("distance_floor_m").ends_with("# sensor profile"),
+        "{text}"
+    );
+    assert!(line("heading_noise_rad_per_sqrt_s").contains("= 0.02"));
+    assert!(line("heading_noise_rad_per_sqrt_s").contains("# file"));
+    assert!(line("window").contains("= 5") && line("window").ends_with("# flag"));
+    assert!(line("particles").contains("= 77") && line("particles").ends_with("# flag"));
+    assert!(line("gate_chi2").ends_with("# default"));
+
+    // a run with the file uses it, and writes the configuration it used
+    let out = dir.path().join("run");
+    let st = agent()
+        .args(["run", "--quiet", "--particles", "50", "--log"])
+        .arg(&sim)
+        .arg("--config")
+        .arg(&file)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let used = std::fs::read_to_string(out.join("config.toml")).unwrap();
+    assert!(
+        used.lines()
+            .any(|l| l.starts_with("window = 3") && l.contains("# file")),
+        "{used}"
+    );
+
+    // an unknown key is refused, named, and nothing is written
+    std::fs::write(&file, "[motion]\nheading_noise = 0.02\n").unwrap();
+    let out = dir.path().join("refused");
+    let st = agent()
+        .args(["run", "--quiet", "--log"])
+        .arg(&sim)
+        .arg("--config")
+        .arg(&file)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!st.status.success());
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(err.contains("motion.heading_noise"), "{err}");
+    assert!(!out.exists());
+}
+
+#[test]
 fn run_on_a_malformed_log_names_the_line_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("in");

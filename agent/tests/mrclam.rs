@@ -1,8 +1,7 @@
 //! Real data: UTIAS MRCLAM dataset 6 from ../shared/data/mrclam6 (beside the repository).
 //! Channel-SLAM on the landmark range/bearing data must beat integrating the odometry alone.
 
-use clap::Parser;
-use echomap_agent::cli::{FilterArgs, MRCLAM_RUN_ARGS};
+use echomap_agent::config::{Layers, resolve};
 use echomap_agent::mrclam::{
     ImportOptions, OdometryDelay, OdometryIntegral, dead_reckoning, estimate_robot_delay, import,
     parse_table,
@@ -23,25 +22,13 @@ fn dataset() -> Option<PathBuf> {
     }
 }
 
-/// The filter flags as `echomap-agent run` takes them.
-#[derive(Debug, Parser)]
-struct Flags {
-    #[command(flatten)]
-    filter: FilterArgs,
-}
-
 #[test]
 fn slam_beats_dead_reckoning_on_real_robots() {
     let Some(dir) = dataset() else { return };
-    // Robots 1 and 3, two seeds each, with the MRCLAM settings every command uses (noise
-    // floors and the odometry heading model measured from the data, line of sight only) at
-    // 400 particles: the mean MAE (seed 001 eq. 27) over the run must be at most 60 % of the
-    // dead-reckoning error of the same odometry.
-    let flags = Flags::parse_from(
-        ["mrclam", "--particles", "400"]
-            .into_iter()
-            .chain(MRCLAM_RUN_ARGS),
-    );
+    // Robots 1 and 3, two seeds each, configured by nothing but the sensor profile the
+    // importer writes (noise floors and the odometry heading model measured from the data,
+    // line of sight only) at 400 particles: the mean MAE (Ulmschneider et al. 2021 eq. 27)
+    // over the run must be at most 60 % of the dead-reckoning error of the same odometry.
     for robot in [1, 3] {
         let (log, truth) = import(
             &dir,
@@ -58,6 +45,17 @@ fn slam_beats_dead_reckoning_on_real_robots() {
             truth.transmitters.len() > 15,
             "track gaps split landmarks into several tracks"
         );
+        let mut config = resolve(&Layers {
+            sensor: log.header.sensor.as_ref(),
+            ..Default::default()
+        })
+        .unwrap()
+        .config;
+        assert!(
+            config.measurement.line_of_sight_only,
+            "the imported log carries its sensor profile"
+        );
+        config.particles = 400;
         let dr = dead_reckoning(&log);
         let dr_err = dr
             .iter()
@@ -67,7 +65,7 @@ fn slam_beats_dead_reckoning_on_real_robots() {
             / dr.len() as f64;
         let mut mae = 0.0;
         for seed in [1, 2] {
-            let cfg = flags.filter.config(seed, truth.poses[0].speed_mps).unwrap();
+            let cfg = config.filter_config(seed, truth.poses[0].speed_mps);
             let out = run_filter(&log, Some(&truth), cfg, false).unwrap();
             let errs: Vec<f64> = out
                 .rows

@@ -1,13 +1,14 @@
 #!/usr/bin/env python3
-"""The ceiling of the MRCLAM cooperative item (README, "Cooperative results", session 32): each
+"""The ceiling of the MRCLAM cooperative experiment (docs/results/cooperative.md): each
 reference robot run alone and with the *true* landmark map as its prior, under the experiment's
-own protocol (the MRCLAM run and prior flags, matched into the robot's frame by the agent).
+own protocol (the log's sensor profile and the `mrclam` preset, matched into the robot's frame
+by the agent).
 Standard library only; needs release binaries (`cargo build --release`).
 
 The true map is the 15 landmarks of the robot's `truth.json` (the importer's ground truth, in
 the robot's local frame), moved by a fixed rigid transform (1 rad, (2, -1) m) so that the agent
 has to match it like a crowd map, every landmark one Gaussian of std 0.1 m (the experiment's
-`--prior-floor 0.15` is added by the agent), existence 1, reliability 50 m, no visibility.
+`prior.position_floor_m = 0.15` is added by the agent), existence 1, reliability 50 m, no visibility.
 
 A run whose directory already holds its summary.json is not run again, so an interrupted call
 resumes. Writes OUT_DIR/summary.json in the experiment's layout (labels `robotN-alone` and
@@ -27,13 +28,8 @@ import subprocess
 import sys
 
 EXE = os.path.join(os.path.dirname(__file__), "../../target/release/echomap-agent")
-# agent/src/cli.rs: MRCLAM_RUN_ARGS, MRCLAM_PRIOR_ARGS and the experiment's matching flags
-FLAGS = """--particles 500 --heading-noise 0.006 --heading-noise-per-turn 0.11 --b-prior zero
---distance-std 0.05 --distance-at-0db 0.6 --aoa-std 0.05 --association-p0 1e-4
---association-gate 30 --association-visibility-weight 0 --prior-floor 0.15
---prior-fuse-matched true --prior-candidates false --transform-draws 1 --prior-anchor-s 30
---prior-fallback true --prior-anchor-pose odometry --prior-visibility-weight 0
---prior-match-score likelihood""".split()
+# the imported log's sensor profile sets the filter; the `mrclam` preset how the prior is used
+FLAGS = "--particles 500 --preset mrclam".split()
 
 
 def true_map(truth_path, out_path, angle=1.0, tx=2.0, ty=-1.0, std=0.1):

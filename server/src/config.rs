@@ -13,25 +13,9 @@ pub enum LogFormat {
     Json,
 }
 
-/// How the matcher scores a hypothesis's inliers (the location term of seed 001 eq. 18).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum MatchScore {
-    /// MSAC: each inlier scores 1 − d²/gate
-    Msac,
-    /// the inliers' log-likelihood ratio against clutter with a covariance scale fitted to
-    /// each hypothesis (tight fits win over loose ones with as many inliers)
-    Likelihood,
-}
-
-impl MatchScore {
-    pub fn location_score(self) -> echomap_shared::matching::LocationScore {
-        use echomap_shared::matching::LocationScore;
-        match self {
-            MatchScore::Msac => LocationScore::Msac,
-            MatchScore::Likelihood => LocationScore::LIKELIHOOD,
-        }
-    }
-}
+/// How the matcher scores a hypothesis's inliers (the location term of Ulmschneider et al.
+/// 2021 eq. 18).
+pub use echomap_shared::matching::MatchScore;
 
 /// What `echomap-server` does besides serving.
 #[derive(Debug, Clone, PartialEq, Eq, Subcommand)]
@@ -109,7 +93,7 @@ pub struct Config {
 
     /// How matching scores a hypothesis's inliers: `msac` or `likelihood` (a covariance scale
     /// fitted per hypothesis). Every replica of a database must use the same value.
-    #[arg(long, env = "ECHOMAP_MATCH_SCORE", value_enum, default_value_t = MatchScore::Msac)]
+    #[arg(long, env = "ECHOMAP_MATCH_SCORE", default_value_t = MatchScore::Msac)]
     pub match_score: MatchScore,
 
     /// Merge an upload's unmatched transmitter into the nearest map transmitter whose x, y lies

@@ -12,8 +12,10 @@ pub mod map;
 pub mod matching;
 pub mod merging;
 pub mod mixture;
+pub mod sensor;
 
 pub use geometry::{Transform2, wrap_angle};
 pub use hexgrid::{HexCell, HexGrid};
 pub use map::{Beta, MapError, Transmitter, TransmitterMap};
 pub use mixture::{Component, MixtureError};
+pub use sensor::SensorProfile;

@@ -1,11 +1,12 @@
 //! Measurement log `echomap.log.v1` and ground truth `echomap.truth.v1`.
 //!
-//! The log is what a channel estimator (KEST-like, seed 002 §2.3) plus a gyroscope deliver,
+//! The log is what a channel estimator (KEST-like, Gentner et al. 2016 §2.3) plus a gyroscope deliver,
 //! one JSON object per line:
 //!
 //! - line 1, the header: `{"format":"echomap.log.v1","snapshot_rate_hz":10.0,"aoa":true,
-//!   "speed":false,"source":"…"}` — `aoa` says whether components carry an angle of arrival,
-//!   `speed` whether snapshots carry a speed measurement (step counter / wheel odometry);
+//!   "speed":false,"source":"…","sensor":{…}}` — `aoa` says whether components carry an angle
+//!   of arrival, `speed` whether snapshots carry a speed measurement (step counter / wheel
+//!   odometry), the optional `sensor` block what the sensor is like ([`SensorProfile`]);
 //! - every further line, one snapshot: `{"t":0.1,"gyro":0.02,"speed":1.0,"components":[
 //!   {"track":3,"d":12.5,"aoa":-0.4,"snr_db":14.2}]}`; a snapshot without a channel estimate
 //!   (motion only: the sensor delivers estimates slower than the snapshot rate) says
@@ -22,6 +23,7 @@
 //! position, +x along the initial heading), with the transform to the world frame.
 
 use crate::geometry::Transform2;
+pub use crate::sensor::SensorProfile;
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
 use std::io::Write;
@@ -46,6 +48,10 @@ pub struct LogHeader {
     /// Free text: where the log came from (simulator scenario/track/seed, dataset, device).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub source: Option<String>,
+    /// What the sensor is like (noise laws, line of sight only, odometry noise): a filter
+    /// takes its defaults from it. Absent: the filter's own defaults.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sensor: Option<SensorProfile>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -132,6 +138,9 @@ impl MeasurementLog {
             && !(h.is_finite() && h >= 0.0)
         {
             return Err(bad(hl + 1, "track_hold_s must be a finite number ≥ 0"));
+        }
+        if let Some(p) = &header.sensor {
+            p.validate().map_err(|m| bad(hl + 1, m))?;
         }
         let mut snapshots = Vec::new();
         let mut last_t = f64::NEG_INFINITY;
@@ -296,6 +305,26 @@ mod tests {
         // a snapshot with an estimate is written as before (no new field)
         assert_eq!(out.matches("estimate").count(), 1, "{out}");
         assert_eq!(MeasurementLog::parse(&out).unwrap(), log);
+    }
+
+    #[test]
+    fn a_sensor_profile_in_the_header_is_read_checked_and_optional() {
+        let with = r#"{"format":"echomap.log.v1","snapshot_rate_hz":10.0,"aoa":true,"sensor":{"distance_m":{"floor":0.05,"at_0db":0.6},"line_of_sight_only":true}}
+{"t":0.0,"gyro":0.0,"components":[]}
+"#;
+        let log = MeasurementLog::parse(with).unwrap();
+        let p = log.header.sensor.as_ref().unwrap();
+        assert!(p.line_of_sight_only);
+        assert_eq!(p.distance_m.unwrap().at_0db, 0.6);
+        assert_eq!(MeasurementLog::parse(&log.to_jsonl()).unwrap(), log);
+        // without the block: as before, and nothing is written for it
+        let without = MeasurementLog::parse(GOOD).unwrap();
+        assert!(without.header.sensor.is_none());
+        assert!(!without.to_jsonl().contains("sensor"));
+        let bad = with.replace("0.05", "-0.05");
+        let e = MeasurementLog::parse(&bad).unwrap_err();
+        assert_eq!(e.line, 1);
+        assert!(e.message.contains("sensor.distance_m.floor"), "{e}");
     }
 
     #[test]

@@ -110,6 +110,55 @@ impl LocationScore {
     pub const LIKELIHOOD: LocationScore = LocationScore::Likelihood { min_scale: 0.1 };
 }
 
+/// The named choice of [`LocationScore`] that settings files, flags and the server take.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MatchScore {
+    /// MSAC: each inlier scores 1 − d²/gate
+    #[default]
+    Msac,
+    /// the inliers' log-likelihood ratio against clutter with a covariance scale fitted to
+    /// each hypothesis (tight fits win over loose ones with as many inliers)
+    Likelihood,
+}
+
+impl MatchScore {
+    /// The location term this choice stands for.
+    pub fn location_score(self) -> LocationScore {
+        match self {
+            MatchScore::Msac => LocationScore::Msac,
+            MatchScore::Likelihood => LocationScore::LIKELIHOOD,
+        }
+    }
+
+    /// The name used in flags and files.
+    pub fn name(self) -> &'static str {
+        match self {
+            MatchScore::Msac => "msac",
+            MatchScore::Likelihood => "likelihood",
+        }
+    }
+}
+
+impl std::str::FromStr for MatchScore {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "msac" => Ok(MatchScore::Msac),
+            "likelihood" => Ok(MatchScore::Likelihood),
+            other => Err(format!(
+                "unknown match score {other:?} (known: msac, likelihood)"
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for MatchScore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 impl Default for MatchConfig {
     fn default() -> Self {
         MatchConfig {

@@ -3,7 +3,7 @@
 use serde::{Deserialize, Serialize};
 
 /// Data-association method for new tracks (seed 002 §5).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Association {
     /// every new track is a new transmitter
@@ -12,6 +12,33 @@ pub enum Association {
     Ml,
     /// data association sampling: sampled in proportion to the likelihoods
     Das,
+}
+
+impl Association {
+    /// The name used in flags and files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Association::Off => "off",
+            Association::Ml => "ml",
+            Association::Das => "das",
+        }
+    }
+}
+
+impl std::str::FromStr for Association {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        [Association::Off, Association::Ml, Association::Das]
+            .into_iter()
+            .find(|a| a.name() == s)
+            .ok_or_else(|| format!("unknown association {s:?} (known: off, ml, das)"))
+    }
+}
+
+impl std::fmt::Display for Association {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
 }
 
 /// Prior on a new transmitter's clock offset b.

@@ -205,16 +205,15 @@ impl Prior {
 }
 
 /// The pose uncertainty an anchor-window detection carries (`PriorSettings::anchor_pose_uncertainty`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum AnchorPose {
     /// none: the pose counts as known (the filter's weighted mean)
-    #[value(alias = "false")]
     Known,
     /// the particles' covariance of (x, y, heading) at the detection. The particles see
     /// the pose relative to their own maps: resampling on detections of transmitters that
     /// were themselves placed from the drifting track narrows their heading spread below
     /// the heading's error in the local frame (README, session 26)
-    #[value(alias = "true")]
     Particles,
     /// the dead-reckoning covariance since the first snapshot: the motion model's noise
     /// (`heading_noise_*`, the speed's) propagated along the gyro and speed alone, an upper

@@ -16,7 +16,7 @@
 //!   for model mismatch and calibration, which dominate at high SNR in practice.
 //! - tracks: a component keeps its track id while it is reported in consecutive snapshots;
 //!   once it is missing (blocked, faded, unresolved, or dropped at random with rate
-//!   `track_loss_rate_hz`) and comes back it gets a new id — as KEST does (seed 002 §5).
+//!   `track_loss_rate_hz`) and comes back it gets a new id — as KEST does (Gentner et al. 2016 §5).
 //!
 //! The gyroscope reports the true mean heading rate over each interval plus bias and white
 //! noise. Everything is reported in the user's local frame (origin at the start, +x along the
@@ -32,6 +32,7 @@ use echomap_shared::log::{
     GroundTruth, LOG_FORMAT, LogHeader, Measurement, MeasurementLog, Snapshot, TRUTH_FORMAT,
     TruePose, TrueTransmitter,
 };
+use echomap_shared::sensor::{NoiseLaw, SensorProfile};
 use echomap_shared::wrap_angle;
 use nalgebra::{Isometry2, Point2};
 use rand::{RngExt, SeedableRng};
@@ -101,8 +102,39 @@ impl Scenario {
         self.transmitter.power_dbm - fspl - losses
     }
 
-    /// Standard deviations (distance m, AoA rad) of the estimates at per-sample SNR `snr_db`.
-    pub fn noise_std(&self, snr_db: f64) -> (f64, f64) {
+    /// The sensor profile the simulator writes into its logs: the estimator's noise laws,
+    /// with the floors stated [`PROFILE_FLOOR_MARGIN`] times as large as drawn, since they
+    /// stand for model mismatch and calibration, which a filter should not take as exactly
+    /// known. The gyroscope is left out: its noise is far below the motion-model noise a
+    /// walking user needs, which the filter's default covers.
+    pub fn sensor_profile(&self, aoa: bool) -> SensorProfile {
+        let e = &self.estimator;
+        let (crlb_d, crlb_a) = self.crlb(0.0);
+        SensorProfile {
+            name: Some(format!(
+                "echomap simulator: {} MHz, {} integrated samples, {}",
+                self.bandwidth_hz / 1e6,
+                e.integration_samples,
+                if aoa {
+                    format!("{}-element array", self.receiver.array_elements)
+                } else {
+                    "single antenna".to_string()
+                }
+            )),
+            distance_m: Some(NoiseLaw {
+                floor: PROFILE_FLOOR_MARGIN * e.distance_floor_m,
+                at_0db: crlb_d,
+            }),
+            aoa_rad: (aoa && crlb_a.is_finite()).then_some(NoiseLaw {
+                floor: PROFILE_FLOOR_MARGIN * e.aoa_floor_rad,
+                at_0db: crlb_a,
+            }),
+            ..Default::default()
+        }
+    }
+
+    /// The Cramér–Rao terms (distance m, AoA rad) at per-sample SNR `snr_db`, without floors.
+    fn crlb(&self, snr_db: f64) -> (f64, f64) {
         let e = &self.estimator;
         let gamma = 10f64.powf(snr_db / 10.0) * e.integration_samples;
         let beta = self.bandwidth_hz / 12f64.sqrt();
@@ -118,12 +150,23 @@ impl Scenario {
         } else {
             f64::INFINITY
         };
+        (crlb_d, crlb_a)
+    }
+
+    /// Standard deviations (distance m, AoA rad) of the estimates at per-sample SNR `snr_db`.
+    pub fn noise_std(&self, snr_db: f64) -> (f64, f64) {
+        let (crlb_d, crlb_a) = self.crlb(snr_db);
+        let e = &self.estimator;
         (
             e.distance_floor_m.hypot(crlb_d),
             e.aoa_floor_rad.hypot(crlb_a),
         )
     }
 }
+
+/// How much larger than drawn the simulator states its noise floors in a log's sensor
+/// profile (see [`Scenario::sensor_profile`]).
+pub const PROFILE_FLOOR_MARGIN: f64 = 1.5;
 
 /// Geometry, interaction sequences and trajectory for tracing `track` of `scenario`.
 fn tracing_setup(
@@ -331,6 +374,7 @@ pub fn simulate(
             "echomap-agent simulate: scenario {} track {} seed {}",
             scenario.name, track.name, opts.seed
         )),
+        sensor: Some(scenario.sensor_profile(aoa)),
     };
     let truth = GroundTruth {
         format: TRUTH_FORMAT.to_string(),

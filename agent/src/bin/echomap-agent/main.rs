@@ -1,5 +1,8 @@
+//! `echomap-agent`: simulate, run Channel-SLAM, evaluate, run crowds and experiments.
+
+mod cli;
+
 use clap::Parser;
-use echomap_agent::cli::{Cli, run};
 
 // The filter clones and frees small component vectors at a high rate from every rayon
 // worker (copy-on-write transmitters after resampling); glibc's allocator showed as ~8 % of
@@ -14,5 +17,5 @@ fn main() -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
-    run(Cli::parse())
+    cli::run(cli::Cli::parse())
 }
