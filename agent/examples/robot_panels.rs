@@ -1,6 +1,6 @@
 //! Draws `robots.png/svg` (one panel per reference robot) from the `summary.json` of an
 //! `experiment cooperative --dataset mrclam` output directory, as the experiment itself does
-//! since session 20: `cargo run --release --example robot_panels -- DIR [TITLE]`.
+//! since 2026-12-03: `cargo run --release --example robot_panels -- DIR [TITLE]`.
 use echomap_agent::evaluate::Curves;
 use echomap_agent::experiment::write_robot_panels;
 use std::path::Path;

@@ -1,6 +1,6 @@
 //! `echomap-agent crowd`: many users as separate operating-system processes of
 //! `echomap-agent run --server … --map …`, one after another (each getting the map left by
-//! the previous ones, seed 001 §V) or up to `--parallel K` at once. One spinner per process,
+//! the previous ones, Ulmschneider et al. 2021 §V) or up to `--parallel K` at once. One spinner per process,
 //! a summary table at the end; a failed process is reported and does not stop the others.
 
 use anyhow::{Context, Result};

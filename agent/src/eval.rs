@@ -1,5 +1,5 @@
-//! Evaluation: per-snapshot errors of a filter run against ground truth (MAE of seed 001
-//! eq. 27, RMSE, error of the weighted-mean estimate) and the map error as OSPA (seed 003
+//! Evaluation: per-snapshot errors of a filter run against ground truth (MAE of Ulmschneider et al. 2021
+//! eq. 27, RMSE, error of the weighted-mean estimate) and the map error as OSPA (Li et al. 2019
 //! eq. 43) between estimated and true transmitter states.
 
 use echomap_shared::TransmitterMap;
@@ -29,7 +29,7 @@ pub struct TrackRow {
 pub struct TruthCols {
     pub true_x: f64,
     pub true_y: f64,
-    /// Σ wᵢ‖p − pᵢ‖ (seed 001 eq. 27)
+    /// Σ wᵢ‖p − pᵢ‖ (Ulmschneider et al. 2021 eq. 27)
     pub mae_m: f64,
     /// √(Σ wᵢ‖p − pᵢ‖²)
     pub rmse_m: f64,
@@ -71,7 +71,7 @@ pub fn track_csv(rows: &[TrackRow]) -> String {
     s
 }
 
-/// OSPA distance of order `p` with cut-off `c` between two point sets (seed 003 eq. 43):
+/// OSPA distance of order `p` with cut-off `c` between two point sets (Li et al. 2019 eq. 43):
 /// `( (1/n)·(min_π Σᵢ d_c(xᵢ, y_π(i))^p + c^p·(n − m)) )^(1/p)` for m ≤ n, with
 /// `d_c = min(c, ‖x − y‖)`; 0 for two empty sets.
 pub fn ospa(a: &[Vector3<f64>], b: &[Vector3<f64>], c: f64, p: f64) -> f64 {

@@ -1,4 +1,4 @@
-//! `echomap-agent experiment cooperative` (seed 001 §V, Fig. 5): per run, a crowd of users
+//! `echomap-agent experiment cooperative` (Ulmschneider et al. 2021 §V, Fig. 5): per run, a crowd of users
 //! builds a map on a server one after another; the reference user then runs with the map
 //! version left by the first c users, for every c asked (0 = alone), and its MAE against
 //! travelled distance is collected over the runs.
@@ -149,7 +149,7 @@ fn build_map(
         server: s.url.clone(),
         map: map.to_owned(),
         token_file: s.token_file.clone(),
-        // contributors build the map one after another (seed 001 §V)
+        // contributors build the map one after another (Ulmschneider et al. 2021 §V)
         parallel: 1,
         config: spec.crowd_config.clone(),
         out: dir.to_path_buf(),

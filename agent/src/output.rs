@@ -19,7 +19,7 @@ pub struct RunSummary {
     pub mae_mean_m: f64,
     pub mae_max_m: f64,
     pub rmse_max_m: f64,
-    /// OSPA (seed 003 eq. 43), cut-off 5 m, order 1, in [x, y, b]
+    /// OSPA (Li et al. 2019 eq. 43), cut-off 5 m, order 1, in [x, y, b]
     pub map_ospa_m: f64,
     pub converged_transmitters: usize,
     pub true_transmitters: usize,

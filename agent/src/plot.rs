@@ -216,7 +216,7 @@ pub fn draw_scenario(
 }
 
 /// Propagation distance of every reported component versus the user's travelled distance,
-/// coloured by SNR (the simulator's counterpart of seed 002 Fig. 7).
+/// coloured by SNR (the simulator's counterpart of Gentner et al. 2016 Fig. 7).
 pub fn draw_components(
     log: &echomap_shared::log::MeasurementLog,
     truth: &echomap_shared::log::GroundTruth,

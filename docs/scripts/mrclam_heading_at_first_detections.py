@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """How far each MRCLAM robot's dead-reckoned heading is off when it first sees landmarks (docs/results/cooperative.md,
-"Cooperative Channel-SLAM", session 28). Standard library only.
+"Cooperative Channel-SLAM", 2026-12-04). Standard library only.
 
 Takes the output directory of `echomap-agent experiment cooperative --dataset mrclam ...` (its
 imported `logs/robotN/log.jsonl` and `truth.json`). Per robot it integrates the log's gyro alone

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Why a MRCLAM reference robot gains or loses with the others' map (docs/results/cooperative.md, "Cooperative
-Channel-SLAM", session 18). Standard library only.
+Channel-SLAM", 2026-12-03). Standard library only.
 
 Takes the output directory of `echomap-agent experiment cooperative --dataset mrclam ...` and a
 reference robot R. Per run `robotR/run-seedS/` it prints:

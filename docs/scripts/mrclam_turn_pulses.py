@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """How faithfully the MRCLAM robots execute short turn commands (README, "Cooperative
-results", session 30). Standard library only.
+results", 2026-12-04). Standard library only.
 
 Reads the raw dataset (`RobotN_Odometry.dat`, `RobotN_Groundtruth.dat`). MRCLAM's odometry is
 the commanded velocity; turns are commanded as pulses of a constant angular rate. A pulse is a

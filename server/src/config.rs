@@ -84,7 +84,7 @@ pub struct Config {
     #[arg(long, env = "ECHOMAP_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
     pub log_format: LogFormat,
 
-    /// Weight of the visibility term in the matching score (seed 001 eq. 18); 0 matches by
+    /// Weight of the visibility term in the matching score (Ulmschneider et al. 2021 eq. 18); 0 matches by
     /// transmitter positions alone — for maps of sensors whose detections depend on the
     /// heading (cameras), not only on the place. Every replica of a database must use the
     /// same value: a rollback's replay must rebuild the same map.
@@ -99,7 +99,7 @@ pub struct Config {
     /// Merge an upload's unmatched transmitter into the nearest map transmitter whose x, y lies
     /// within this squared Mahalanobis distance (sum of both covariances; 2 degrees of freedom,
     /// e.g. 9.21 for 99 %) instead of adding it as a new one; 0 adds every unmatched
-    /// transmitter (seed 001). Every replica of a database must use the same value.
+    /// transmitter (Ulmschneider et al. 2021). Every replica of a database must use the same value.
     #[arg(long, env = "ECHOMAP_MERGE_ABSORB_CHI2", default_value_t = 0.0, value_parser = non_negative)]
     pub merge_absorb_chi2: f64,
 

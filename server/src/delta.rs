@@ -1,5 +1,5 @@
 //! Version bodies stored as deltas. A merge keeps the prior's transmitters in place (matched
-//! ones are replaced by their merge, seed 001 eq. 22–26) and appends the unmatched user
+//! ones are replaced by their merge, Ulmschneider et al. 2021 eq. 22–26) and appends the unmatched user
 //! transmitters, so version n differs from version n − 1 in the transmitters the upload
 //! touched — about as many as the upload holds, not as many as the map. Inside a group
 //! commit every version but the batch's last is stored as the changed transmitters only;

@@ -1,6 +1,6 @@
 //! echomap map server: keeps the crowd-sourced prior maps, versioned, in SQLite.
-//! Agents upload their user maps; the server matches (RANSAC, seed 001 §III) and merges
-//! (seed 001 §IV) them into a new version and serves the current map to the next agent.
+//! Agents upload their user maps; the server matches (RANSAC, Ulmschneider et al. 2021 §III) and merges
+//! (Ulmschneider et al. 2021 §IV) them into a new version and serves the current map to the next agent.
 
 pub mod api;
 pub mod app;

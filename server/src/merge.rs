@@ -1,6 +1,6 @@
 //! What happens to an upload: the first one initializes a map (it defines the map frame), later
-//! ones are matched against the current version (seed 001 §III, RANSAC) and merged weighted by
-//! reliability (seed 001 §IV). Pure and synchronous: the server runs it on the blocking pool.
+//! ones are matched against the current version (Ulmschneider et al. 2021 §III, RANSAC) and merged weighted by
+//! reliability (Ulmschneider et al. 2021 §IV). Pure and synchronous: the server runs it on the blocking pool.
 //!
 //! The RANSAC draws are seeded from the SHA-256 of the request body, so an upload meets the same
 //! draws whenever it is processed: a rollback's replay rebuilds exactly the map that merging the

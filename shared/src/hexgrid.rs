@@ -1,4 +1,4 @@
-//! Hexagonal visibility grid (seed 001 §II, eq. 11–12): the plane is tiled by pointy-top
+//! Hexagonal visibility grid (Ulmschneider et al. 2021 §II, eq. 11–12): the plane is tiled by pointy-top
 //! hexagons of circumradius `hex_size_m`, addressed by axial coordinates `(q, r)`.
 //! Point ↔ cell conversion is delegated to the `hexx` crate (f32 internally: at 10 km from
 //! the origin its resolution is still about a millimetre, far below any cell size used here).

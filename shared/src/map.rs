@@ -1,7 +1,7 @@
 //! The transmitter map, `echomap.map.v1` — the contract between agents and the map server.
 //!
-//! A map holds (virtual) transmitters, each a Gaussian mixture over `[x, y, b]` (seed 002
-//! §4.3), an existence probability (seed 001 eq. 20/25), a reliability distance (eq. 21/24)
+//! A map holds (virtual) transmitters, each a Gaussian mixture over `[x, y, b]` (Gentner et al. 2016
+//! §4.3), an existence probability (Ulmschneider et al. 2021 eq. 20/25), a reliability distance (eq. 21/24)
 //! and hexagonal visibility counters (eq. 11–12). A [`TransmitterMap`] can only be built
 //! through validation ([`TransmitterMap::new`] or deserialization), so every value past the
 //! boundary is finite, every covariance symmetric positive-definite, every weight vector

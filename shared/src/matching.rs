@@ -1,5 +1,5 @@
 //! Map matching: the rigid transform `map_from_agent` and the transmitter correspondences
-//! between a user map (agent frame) and a prior map (map frame), seed 001 §III, Fig. 3.
+//! between a user map (agent frame) and a prior map (map frame), Ulmschneider et al. 2021 §III, Fig. 3.
 //!
 //! RANSAC over minimal samples of three transmitters. Beyond the paper's random draw from
 //! both maps, the prior triple is found from the user triple by pairwise-distance

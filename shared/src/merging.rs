@@ -1,4 +1,4 @@
-//! Map merging (seed 001 §IV): a user map, matched into the map frame, is merged into the
+//! Map merging (Ulmschneider et al. 2021 §IV): a user map, matched into the map frame, is merged into the
 //! prior map. For each correspondence (j_u, j_p):
 //! - relative reliabilities `d̄_u = d_u/(d_u + d_p)`, `d̄_p = d_p/(d_u + d_p)` (eq. 22; ½/½ when
 //!   both are 0);
@@ -17,7 +17,7 @@
 //! into the nearest such transmitter by the same rule instead of being added. RANSAC takes at
 //! most one correspondence per transmitter, so a landmark a user mapped twice (once per track
 //! of it, when association did not close the loop) would otherwise enter the crowd's map as a
-//! second copy on every upload (README, "Cooperative Channel-SLAM", session 15).
+//! second copy on every upload (README, "Cooperative Channel-SLAM", 2026-12-03).
 
 use crate::map::{MapError, Transmitter, TransmitterMap};
 use crate::mixture::{self, Component};
@@ -31,7 +31,7 @@ pub struct MergeConfig {
     pub max_components: usize,
     /// an unmatched user transmitter within this squared Mahalanobis distance (x, y; 2 degrees
     /// of freedom, e.g. 9.21 for 99 %) of a prior transmitter is merged into the nearest one
-    /// instead of being added; 0 (default) adds every unmatched transmitter (seed 001)
+    /// instead of being added; 0 (default) adds every unmatched transmitter (Ulmschneider et al. 2021)
     pub absorb_chi2: f64,
 }
 

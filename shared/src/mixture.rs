@@ -1,6 +1,6 @@
 //! Gaussian mixtures over a transmitter state `[x, y, b]` and their reduction.
 //!
-//! A transmitter is represented by a weighted sum of Gaussians (seed 002 §4.3). The mixture
+//! A transmitter is represented by a weighted sum of Gaussians (Gentner et al. 2016 §4.3). The mixture
 //! grows with initialization and merging of maps, so it is reduced by moment-preserving
 //! pairwise merges chosen by Runnalls' KL-type upper bound
 //! `B(i,j) = ½[(wᵢ+wⱼ)·ln|Pᵢⱼ| − wᵢ·ln|Pᵢ| − wⱼ·ln|Pⱼ|]`

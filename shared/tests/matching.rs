@@ -1,5 +1,5 @@
 //! Matching and merging on thousands of seeded synthetic cases with known truth
-//! (issue 4). Success rates are printed (`cargo test -p echomap-shared --test matching --
+//! . Success rates are printed (`cargo test -p echomap-shared --test matching --
 //! --nocapture`) and asserted.
 
 use echomap_shared::map::{Beta, Transmitter, TransmitterMap};
@@ -220,7 +220,7 @@ fn recovery_rate(
     rate
 }
 
-/// One setting of issue 4: each map holds n ∈ [5, 200] transmitters of the world, a fraction
+/// One setting of the matching acceptance: each map holds n ∈ [5, 200] transmitters of the world, a fraction
 /// `overlap` of them shared with the other map (at least 5), plus an outlier fraction drawn
 /// from `outliers` of its size; noise 0.1 m on every coordinate, spacing ≈ 8 m.
 fn setting(rng: &mut ChaCha8Rng, overlap: f64, outliers: std::ops::Range<f64>) -> Case {
@@ -231,7 +231,7 @@ fn setting(rng: &mut ChaCha8Rng, overlap: f64, outliers: std::ops::Range<f64>) -
     case(rng, shared, own, own, outlier, 0.1)
 }
 
-// Issue 4: ≥ 99 % recovered where ≥ 5 true correspondences exist and the noise is small
+// Acceptance: ≥ 99 % recovered where ≥ 5 true correspondences exist and the noise is small
 // against the spacing — per setting, 1000 seeded cases each.
 
 #[test]
@@ -266,7 +266,7 @@ fn recovers_half_overlap_with_many_outliers() {
     assert!(rate >= 0.99, "success rate {rate}");
 }
 
-/// A harsher mix beyond the issue's settings: the shared part anywhere from 5 transmitters to
+/// A harsher mix beyond the target settings: the shared part anywhere from 5 transmitters to
 /// all, the rest split at random between the maps, 0–60 % outliers — down to 4 % of a map
 /// in common. Reported, and guarded against regressions.
 #[test]

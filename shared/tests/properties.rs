@@ -1,4 +1,4 @@
-//! Property tests (proptest, fixed seed) of matching and merging (issue 4): random maps of
+//! Property tests (proptest, fixed seed) of matching and merging: random maps of
 //! 5–200 transmitters under a random rigid transform. The success-rate statistics over
 //! thousands of seeded cases per setting are in `tests/matching.rs`; these check properties
 //! that must hold for every case drawn.

@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-/// Data-association method for new tracks (seed 002 §5).
+/// Data-association method for new tracks (Gentner et al. 2016 §5).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Association {
@@ -45,7 +45,7 @@ impl std::fmt::Display for Association {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum BPrior {
-    /// b ∈ [0, d) uniform: the transmitter lies anywhere on the ray up to range d (seed 002 §4.3)
+    /// b ∈ [0, d) uniform: the transmitter lies anywhere on the ray up to range d (Gentner et al. 2016 §4.3)
     Uniform,
     /// b ≈ 0 with the given std (m): line-of-sight-only data such as MRCLAM landmarks
     Zero { std_m: f64 },
@@ -102,7 +102,7 @@ pub struct FilterConfig {
     pub speed_noise_mps_per_sqrt_s: f64,
     /// std of a measured speed (m/s), when the log carries speed
     pub speed_measurement_std_mps: f64,
-    /// the known initial speed (m/s) (seed 002 §6.1: the initial state is known)
+    /// the known initial speed (m/s) (Gentner et al. 2016 §6.1: the initial state is known)
     pub initial_speed_mps: f64,
     /// spread of the initial speed over particles (m/s)
     pub initial_speed_std_mps: f64,
@@ -112,13 +112,13 @@ pub struct FilterConfig {
     pub init_spacing_m: f64,
     /// most components a new transmitter starts with
     pub init_max_components: usize,
-    /// components below this weight are pruned (ρ of seed 002 §4.3)
+    /// components below this weight are pruned (ρ of Gentner et al. 2016 §4.3)
     pub prune_weight: f64,
     /// most components per transmitter and particle (reduced by Runnalls merging)
     pub max_components: usize,
     /// resample when ESS < ratio × particles
     pub resample_ess_ratio: f64,
-    /// likelihood of "no association" (density in 1/(m·rad); ToA-only: 1/m) — p₀ of seed 002 §5
+    /// likelihood of "no association" (density in 1/(m·rad); ToA-only: 1/m) — p₀ of Gentner et al. 2016 §5
     pub association_p0: f64,
     /// probability ε that a detection of a known transmitter is an outlier (a gross error of
     /// the channel estimator or the detector): the likelihood of a bound track's measurement
@@ -130,7 +130,7 @@ pub struct FilterConfig {
     /// squared Mahalanobis gate of an association candidate (χ², default 11.8 ≈ 99.7 % for 2 dof)
     pub association_gate: f64,
     /// detections of a new track over which its association with an old transmitter is
-    /// decided (1 = at its first detection, seed 002 §5): with n > 1 the track starts as a
+    /// decided (1 = at its first detection, Gentner et al. 2016 §5): with n > 1 the track starts as a
     /// tentative new transmitter, the gated old candidates are updated alongside it, and after
     /// n detections (or when the track ends) each particle compares the evidences
     /// ln p(z₁..zₙ | new) and ln p(z₁..zₙ | old j)
@@ -145,18 +145,7 @@ pub struct FilterConfig {
     pub association_max_spread_m: f64,
     /// prior-map transmitters are association candidates only with at least this existence
     pub prior_min_existence: f64,
-    /// a prior-map transmitter is no association candidate for a particle that already holds
-    /// a transmitter of its own at least as tight (trace of the position covariance) within
-    /// this squared Mahalanobis distance of it (χ² over x, y of both mixtures' moments; 0:
-    /// off). The particle knows that transmitter already; a copy from the prior would start
-    /// a second one beside it, and a crowd map holding two or three versions of a transmitter
-    /// (its contributors' duplicates) offers each in turn — on MRCLAM robot 4's maps grew from
-    /// 17 transmitters alone to 38 with the crowd's map. Default off: the gate brought them
-    /// back to 16–20 and helped robots 1 and 4, but robots 2, 3 and 5, whose own maps are
-    /// poor, gain from the copies and lost, and the end-to-end test's triples were worse
-    /// (README, "Cooperative Channel-SLAM", session 14)
-    pub prior_shadow_chi2: f64,
-    /// exponent of the visibility term of association (seed 001 eq. 19): a candidate's
+    /// exponent of the visibility term of association (Ulmschneider et al. 2021 eq. 19): a candidate's
     /// score is `ln p(z | candidate) + w·ln p_vis`, own and prior candidates alike (1: the
     /// paper's term; 0: by the measurement alone). The hex-cell counts assume a transmitter in
     /// range is seen from anywhere in the cell; a sensor whose detections depend on its heading
@@ -164,7 +153,7 @@ pub struct FilterConfig {
     pub association_visibility_weight: f64,
     /// hexagon circumradius of the visibility grid (m)
     pub hex_size_m: f64,
-    /// Beta prior pseudo-counts (ν, ν̄) of seed 001 eq. 12
+    /// Beta prior pseudo-counts (ν, ν̄) of Ulmschneider et al. 2021 eq. 12
     pub visibility_prior: (f64, f64),
     /// a track stays alive this long without detection (s); set from the log header
     pub track_hold_s: f64,
@@ -205,7 +194,6 @@ impl Default for FilterConfig {
             outlier_density: 1.0 / (10.0 * std::f64::consts::TAU),
             association_max_spread_m: 3.0,
             prior_min_existence: 0.5,
-            prior_shadow_chi2: 0.0,
             association_visibility_weight: 1.0,
             hex_size_m: 2.0,
             visibility_prior: (1.0, 1.0),

@@ -1,6 +1,6 @@
 //! Export of the particle ensemble as an `echomap.map.v1` user map (local frame).
 //!
-//! Per transmitter identity j (seed 001 §IV):
+//! Per transmitter identity j (Ulmschneider et al. 2021 §IV):
 //! - existence `p_e = Σ_{i∈T_j} wᵢ` over the particles in which j exists, i.e. did not get
 //!   associated into an older transmitter (eq. 20);
 //! - reliability `d_rel = Σ_{i∈T_j} wᵢ·d_rel,i` (eq. 21);

@@ -1,9 +1,9 @@
 //! Single-user Channel-SLAM: a Rao-Blackwellized Gaussian-sum particle filter (RBGSPF,
-//! seed 002 §4, Algorithm 1). User particles carry the track; per particle every (virtual)
+//! Gentner et al. 2016 §4, Algorithm 1). User particles carry the track; per particle every (virtual)
 //! transmitter is a Gaussian mixture over `[x, y, b]` whose components are updated by
 //! square-root cubature Kalman filters. New tracks are associated with old transmitters
-//! (seed 002 §5) or, once the agent's map matches a prior map, with prior-map transmitters
-//! (seed 001 eq. 19, module `prior`), visibility is mapped on a hex grid (seed 001 eq. 11–12), and at the end the
+//! (Gentner et al. 2016 §5) or, once the agent's map matches a prior map, with prior-map transmitters
+//! (Ulmschneider et al. 2021 eq. 19, module `prior`), visibility is mapped on a hex grid (Ulmschneider et al. 2021 eq. 11–12), and at the end the
 //! particle ensemble is exported as an `echomap.map.v1` user map.
 
 pub mod config;

@@ -1,5 +1,5 @@
-//! Measurement model (seed 002 eq. 19–21, AoA convention of DESIGN.md) and the
-//! initialization of a new transmitter from its first measurement (seed 002 §4.3).
+//! Measurement model (Gentner et al. 2016 eq. 19–21, AoA convention of DESIGN.md) and the
+//! initialization of a new transmitter from its first measurement (Gentner et al. 2016 §4.3).
 
 use super::config::{BPrior, FilterConfig};
 use super::srckf::SqrtGaussian;

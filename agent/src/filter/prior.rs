@@ -1,6 +1,6 @@
-//! A prior map in the agent's local frame (seed 001 §III): the crowd-sourced map, matched
+//! A prior map in the agent's local frame (Ulmschneider et al. 2021 §III): the crowd-sourced map, matched
 //! against the agent's own map while it runs and transformed into its frame, offers its
-//! transmitters as association candidates for new tracks (seed 001 eq. 19).
+//! transmitters as association candidates for new tracks (Ulmschneider et al. 2021 eq. 19).
 //!
 //! [`PriorTracker`] re-matches periodically: an accepted match (re)places the prior in the
 //! filter with the newer transform; when matching fails and the transform in use no longer
@@ -213,7 +213,7 @@ pub enum AnchorPose {
     /// the particles' covariance of (x, y, heading) at the detection. The particles see
     /// the pose relative to their own maps: resampling on detections of transmitters that
     /// were themselves placed from the drifting track narrows their heading spread below
-    /// the heading's error in the local frame (README, session 26)
+    /// the heading's error in the local frame (README, 2026-12-04)
     Particles,
     /// the dead-reckoning covariance since the first snapshot: the motion model's noise
     /// (`heading_noise_*`, the speed's) propagated along the gyro and speed alone, an upper
@@ -243,12 +243,6 @@ pub struct PriorSettings {
     /// crowd map is distorted by its contributors' track errors beyond its covariances;
     /// default 0.5
     pub position_floor_m: f64,
-    /// std added in quadrature to the clock offset `b` of every prior transmitter (m): each
-    /// contributor's `b` also absorbs its own receiver's range bias (on MRCLAM each robot's
-    /// camera has its own), so the crowd's offsets are one user's estimates, not the next
-    /// user's; the exported maps carry no floor on `b`. Default 0 (seed 001: offsets are
-    /// properties of the transmitter, shared by every user)
-    pub offset_floor_m: f64,
     /// how the transform's uncertainty enters the filter: `Some(k)` — every particle draws
     /// its own correction of the transform from the fit's spread with every std multiplied
     /// by k (the fit's σ comes from residuals and misses the drift the agent's map shares
@@ -268,12 +262,6 @@ pub struct PriorSettings {
     /// but over the 10-run indoor cooperative experiment it gave no consistent gain (c21
     /// final MAE median 0.70 m against 0.67 m without; README)
     pub anchor_window_s: f64,
-    /// no transform is adopted while the anchor window is open (accepted matches are
-    /// `pending`): the anchor points are placed from the filter's own poses, and a transform
-    /// in use pulls those poses into its frame — one adopted early with a rotation error
-    /// would then bias the points meant to correct it. The first attempt after the window
-    /// closes refits the match to all of them. Default false
-    pub hold_in_anchor_window: bool,
     /// whether and how the anchor points carry the agent's pose uncertainty at each
     /// detection (a covariance of x, y and heading, the heading's lever arm being the
     /// range): the detections of one transmitter are weighted by their total variance and
@@ -288,39 +276,16 @@ pub struct PriorSettings {
     /// known than they are. Enters through `transform_draws` or the prior's inflated
     /// covariances. Default false
     pub anchor_spread: bool,
-    /// prior transmitters that correspond to one of the agent's own in the match are no
-    /// candidates for new tracks. Default false: on 8 seeded three-agent runs and on a
-    /// perfect map it changed the error by less than the run-to-run spread (README)
-    pub claim_matched: bool,
-    /// a transform is adopted, or replaces one it does not agree with, only once this many
-    /// consecutive accepted matches agree on it (1: the first accepted match is adopted).
-    /// Early in a run the agent's map holds a few transmitters, and in a layout of clusters
-    /// (MRCLAM's landmarks, 0.2 m apart) a single accepted match can pair them wrongly and be
-    /// 0.3–0.5 rad off; a transform the next attempt finds again is not a chance fit.
-    /// Default 1: on MRCLAM (10 runs, session 13) two confirmations made a first wrong
-    /// choice stick — the half turn is found again as readily as the right transform, which
-    /// then rarely wins twice in a row — so contributors uploaded more half-turned maps and
-    /// robots 1 and 4 were no better (README, "Cooperative Channel-SLAM")
-    pub confirmations: usize,
     /// two transforms agree when their rotations differ by at most this (rad) and they put
     /// the inliers' centroid within `agree_m` of each other; defaults 0.1 rad, 0.5 m
     pub agree_rad: f64,
     pub agree_m: f64,
-    /// when a transform that disagrees with the one in use replaces it, the transmitters the
-    /// particles started from prior copies under the old one are released (their position
-    /// covariance widened by how far the new transform moves them, see
-    /// `Filter::release_prior_copies`). Default false (measured on MRCLAM in session 20; README)
-    pub release_on_change: bool,
-    /// prior transmitters whose reliability distance (seed 001 eq. 21/24: the distance the
-    /// contributors walked while they saw it) is below this are matched against but offered
-    /// to no new track (m); default 0 (every prior transmitter is a candidate)
-    pub min_reliability_m: f64,
     /// every accepted match under the transform in use fuses each prior transmitter it pairs
     /// with one of the agent's own into that one, once per pair (`Filter::fuse_prior`; χ² gate
     /// of the matcher): the agent's transmitters it already knows gain the crowd's estimate
     /// instead of only its new tracks. Default false
     pub fuse_matched: bool,
-    /// prior transmitters are candidates for new tracks (seed 001 eq. 19). False leaves the
+    /// prior transmitters are candidates for new tracks (Ulmschneider et al. 2021 eq. 19). False leaves the
     /// crowd's transmitters to matching and (with `fuse_matched`) fusion only: no track starts
     /// from a prior copy. Default true
     pub offer_to_new_tracks: bool,
@@ -334,18 +299,12 @@ impl Default for PriorSettings {
             first_match_s: 5.0,
             residual_floor_m: 0.3,
             position_floor_m: 0.5,
-            offset_floor_m: 0.0,
             transform_draws: None,
             anchor_window_s: 0.0,
-            hold_in_anchor_window: false,
             anchor_pose_uncertainty: AnchorPose::Known,
             anchor_spread: false,
-            claim_matched: false,
-            confirmations: 1,
             agree_rad: 0.1,
             agree_m: 0.5,
-            release_on_change: false,
-            min_reliability_m: 0.0,
             fuse_matched: false,
             offer_to_new_tracks: true,
             matching: MatchConfig::default(),
@@ -363,9 +322,7 @@ pub struct MatchEvent {
     pub angle_rad: f64,
     pub tx: f64,
     pub ty: f64,
-    /// adopted | replaced | kept | dropped | pending (an accepted match awaiting
-    /// confirmation or, with `hold_in_anchor_window`, the window's end; no transform in use)
-    /// | none
+    /// adopted | replaced | kept | dropped | none
     pub action: &'static str,
     /// anchor points the accepted transform was refitted to (0: the match's own fit)
     pub anchors: usize,
@@ -381,9 +338,6 @@ pub struct MatchEvent {
 #[derive(Debug)]
 pub struct PriorTracker {
     map: TransmitterMap,
-    /// the prior transmitters offered to new tracks: those at or above
-    /// `PriorSettings::min_reliability_m` (all of them by default)
-    candidates: TransmitterMap,
     settings: PriorSettings,
     seed: u64,
     next_t: Option<f64>,
@@ -397,9 +351,6 @@ pub struct PriorTracker {
     /// the dead-reckoning covariance of (x, y, heading) and the time it is for
     /// (`AnchorPose::Odometry`)
     dead_reckoning: (Matrix3<f64>, f64),
-    /// the latest accepted transform that disagrees with the one in use, and how many
-    /// consecutive accepted matches found them (see `PriorSettings::confirmations`)
-    pending: Option<(Isometry2<f64>, usize)>,
     /// tracks whose transmitter had a prior transmitter fused in (`fuse_matched`)
     fused: BTreeSet<u64>,
     pub events: Vec<MatchEvent>,
@@ -519,23 +470,8 @@ fn pose_moments(filter: &Filter) -> (Vector3<f64>, Matrix3<f64>) {
 
 impl PriorTracker {
     pub fn new(map: TransmitterMap, settings: PriorSettings, seed: u64) -> Result<Self> {
-        let candidates = TransmitterMap::new(
-            map.hex_size_m(),
-            map.transmitters()
-                .iter()
-                .filter(|t| t.reliability_m >= settings.min_reliability_m)
-                .map(|t| {
-                    let mut t = t.clone();
-                    for c in &mut t.components {
-                        c.cov[(2, 2)] += settings.offset_floor_m.powi(2);
-                    }
-                    t
-                })
-                .collect(),
-        )?;
         Ok(PriorTracker {
             map,
-            candidates,
             settings,
             seed,
             next_t: None,
@@ -544,7 +480,6 @@ impl PriorTracker {
             t0: None,
             anchors: BTreeMap::new(),
             dead_reckoning: (Matrix3::zeros(), f64::NAN),
-            pending: None,
             fused: BTreeSet::new(),
             events: Vec::new(),
         })
@@ -639,9 +574,6 @@ impl PriorTracker {
                 .all(|p| (fit * p - cur * p).norm() <= 3.0 * spread.std_at(p)),
             _ => false,
         };
-        // A transform that differs from the one in use (or the first one) needs
-        // `confirmations` consecutive accepted matches that agree with each other; a
-        // refinement of the transform in use does not.
         let centroid = (!points.is_empty()).then(|| {
             Point2::from(
                 points.iter().map(|p| p.coords).sum::<Vector2<f64>>() / points.len() as f64,
@@ -652,49 +584,19 @@ impl PriorTracker {
                 <= self.settings.agree_rad
                 && centroid.is_none_or(|c| (a * c - b * c).norm() <= self.settings.agree_m)
         };
-        let confirmed = if !m.accepted {
-            self.pending = None;
-            false
-        } else if self.current.as_ref().is_some_and(|cur| same(cur, &fit)) {
-            self.pending = None;
-            true
-        } else {
-            let n = match self.pending {
-                Some((prev, n)) if same(&prev, &fit) => n + 1,
-                _ => 1,
-            };
-            self.pending = Some((fit, n));
-            n >= self.settings.confirmations.max(1)
-                && !(in_window && self.settings.hold_in_anchor_window)
-        };
         let action = if agrees {
             "kept"
-        } else if m.accepted && !confirmed {
-            if self.current.is_some() {
-                "kept"
-            } else {
-                "pending"
-            }
         } else if m.accepted
             && in_use.is_none_or(|cur| match self.settings.matching.location_score {
                 LocationScore::Msac => m.inliers >= cur.inliers,
                 LocationScore::Likelihood { .. } => m.score >= cur.score,
             })
         {
-            self.pending = None;
             let action = if self.current.is_some() {
                 "replaced"
             } else {
                 "adopted"
             };
-            if let Some(cur) = self.current.filter(|cur| !same(cur, &fit))
-                && self.settings.release_on_change
-            {
-                // a prior point the old transform put at p (agent frame) is now at
-                // fit⁻¹(cur(p))
-                let back = fit.inverse() * cur;
-                filter.release_prior_copies(|p| (back * p - p).norm());
-            }
             self.current = Some(fit);
             let mut unc =
                 TransformUncertainty::from_fit(&points, &residuals, self.settings.residual_floor_m);
@@ -709,7 +611,7 @@ impl PriorTracker {
                 .zip(unc)
                 .map(|(k, u)| u.dispersed(k));
             let mut prior = Prior::new(
-                &self.candidates,
+                &self.map,
                 fit.inverse(),
                 if self.spread.is_some() {
                     None
@@ -723,12 +625,6 @@ impl PriorTracker {
             if !self.settings.offer_to_new_tracks {
                 let ids: Vec<String> = prior.txs.iter().map(|t| t.id.clone()).collect();
                 prior.claim(ids.iter().map(String::as_str));
-            } else if self.settings.claim_matched {
-                prior.claim(
-                    m.correspondences
-                        .iter()
-                        .map(|&(_, p)| self.map.transmitters()[p].id.as_str()),
-                );
             }
             filter.set_prior(Some(prior));
             action

@@ -1,4 +1,4 @@
-//! The RBGSPF core (seed 002 Algorithm 1): predict user particles, update every transmitter
+//! The RBGSPF core (Gentner et al. 2016 Algorithm 1): predict user particles, update every transmitter
 //! mixture with its measurement, weight particles, associate new tracks, resample.
 //!
 //! Weights, in log space: component weights `w_c ∝ w_c · N(z; ẑ_c, P_zz,c)` (eq. 46) and
@@ -33,10 +33,9 @@ pub struct TxState {
     /// dense index of the identity (the track that created it)
     pub identity: u32,
     pub comps: Vec<Comp>,
-    /// distance this particle walked while the transmitter was visible (seed 001 eq. 21)
+    /// distance this particle walked while the transmitter was visible (Ulmschneider et al. 2021 eq. 21)
     pub reliability_m: f64,
-    /// started from a prior-map transmitter under the transform in use (cleared when a
-    /// disagreeing transform releases it, see [`Filter::release_prior_copies`])
+    /// started from a prior-map transmitter under the transform in use
     pub from_prior: bool,
     /// the detection it was started from (None for a prior copy): `Filter::fuse_prior`
     /// measures how much better the crowd's estimate is predicted now than by the wide
@@ -395,7 +394,7 @@ fn update_mixture_gaussian(
     max_ll + sum.ln()
 }
 
-/// Pruning (ρ), merging of close components and the per-transmitter cap (seed 002 §4.3).
+/// Pruning (ρ), merging of close components and the per-transmitter cap (Gentner et al. 2016 §4.3).
 fn tidy(comps: &mut Vec<Comp>, cfg: &FilterConfig, merge_now: bool) {
     if comps.len() > 1 {
         let max_w = comps.iter().map(|c| c.weight).fold(0.0, f64::max);
@@ -528,31 +527,6 @@ impl Filter {
 
     pub fn prior(&self) -> Option<&Prior> {
         self.prior.as_deref()
-    }
-
-    /// Releases every transmitter the particles started from a prior copy under a transform
-    /// that a disagreeing one now replaces: `moved(p)` is how far the new transform puts the
-    /// prior point that the old one put at `p` (agent frame). Each component's x/y covariance
-    /// gets `moved(mean)²` added on its diagonal, so the copy no longer holds the particle to
-    /// where the old transform said, and the particle's own detections place it again. The
-    /// transmitters stay (the particle has measured them) and count as its own from then on.
-    pub fn release_prior_copies(&mut self, moved: impl Fn(&Point2<f64>) -> f64) {
-        for p in &mut self.particles {
-            for tx in p.txs.iter_mut().filter(|t| t.from_prior) {
-                let tx = Arc::make_mut(tx);
-                tx.from_prior = false;
-                for c in &mut tx.comps {
-                    let mean = c.g.mean;
-                    let d = moved(&Point2::new(mean.x, mean.y));
-                    let mut cov = c.g.cov();
-                    cov[(0, 0)] += d * d;
-                    cov[(1, 1)] += d * d;
-                    if let Some(g) = SqrtGaussian::from_cov(mean, &cov) {
-                        c.g = g;
-                    }
-                }
-            }
-        }
     }
 
     /// Fuses prior-map transmitters into the particles' own transmitters a match paired them
@@ -702,7 +676,7 @@ impl Filter {
             .collect()
     }
 
-    /// MAE (seed 001 eq. 27: Σ wᵢ‖p − pᵢ‖) and RMSE (√Σ wᵢ‖p − pᵢ‖²) against a true position.
+    /// MAE (Ulmschneider et al. 2021 eq. 27: Σ wᵢ‖p − pᵢ‖) and RMSE (√Σ wᵢ‖p − pᵢ‖²) against a true position.
     pub fn errors(&self, true_x: f64, true_y: f64) -> (f64, f64) {
         let w = self.weights();
         let (mut mae, mut mse) = (0.0, 0.0);
@@ -968,7 +942,7 @@ impl Filter {
 }
 
 impl Particle {
-    /// Motion model (seed 002 eq. 16–18 in position/heading/speed form): the heading turns by
+    /// Motion model (Gentner et al. 2016 eq. 16–18 in position/heading/speed form): the heading turns by
     /// the gyro rate plus von Mises noise, the speed follows a random walk (or the measured
     /// speed), and the position moves along the mean heading of the interval.
     fn predict(
@@ -1010,7 +984,7 @@ impl Particle {
     }
 
     /// A track this particle has not bound yet: associate it with an old transmitter, a
-    /// prior-map transmitter or none (seed 002 §5; seed 001 eq. 19: visibility term × state
+    /// prior-map transmitter or none (Gentner et al. 2016 §5; Ulmschneider et al. 2021 eq. 19: visibility term × state
     /// likelihood). A track associated with a prior transmitter starts from that
     /// transmitter's mixture (agent frame) instead of the wide initialization.
     #[allow(clippy::too_many_arguments)]
@@ -1040,7 +1014,7 @@ impl Particle {
             let cell = vis.grid().cell_of(&here);
             let mut cands: Vec<(Cand, f64)> = Vec::new();
             for (idx, tx) in self.txs.iter().enumerate() {
-                // only transmitters not detected right now are candidates ("old", seed 002 §5)
+                // only transmitters not detected right now are candidates ("old", Gentner et al. 2016 §5)
                 if self
                     .bound
                     .iter()
@@ -1059,31 +1033,10 @@ impl Particle {
             if let Some(prior) = prior {
                 let pose = self.prior_pose();
                 let here = Point2::new(pose.x, pose.y);
-                let own: Vec<(Vector3<f64>, Matrix3<f64>)> = if cfg.prior_shadow_chi2 > 0.0 {
-                    self.txs
-                        .iter()
-                        .filter_map(|t| mixture_moments(&t.comps))
-                        .collect()
-                } else {
-                    Vec::new()
-                };
-                // (the prior as matched: a particle's own transform draw is not applied here)
-                let xy_trace = |c: &Matrix3<f64>| c[(0, 0)] + c[(1, 1)];
-                let shadowed = |moments: &Option<(Vector3<f64>, Matrix3<f64>)>| {
-                    let Some((pm, pc)) = moments else {
-                        return false;
-                    };
-                    own.iter().any(|(om, oc)| {
-                        xy_trace(oc) <= xy_trace(pc)
-                            && echomap_shared::mixture::xy_distance2((pm, pc), (om, oc))
-                                .is_some_and(|d2| d2 <= cfg.prior_shadow_chi2)
-                    })
-                };
                 for (idx, ptx) in prior.txs.iter().enumerate() {
                     if ptx.existence < cfg.prior_min_existence
                         || ptx.claimed
                         || self.prior_used.contains(&(idx as u32))
-                        || shadowed(&ptx.moments)
                     {
                         continue;
                     }

@@ -1,5 +1,5 @@
 //! Square-root cubature Kalman filter update for one Gaussian component of a transmitter
-//! state `x = [x, y, b]` (seed 002 §3, §6 and Appendix A; Arasaratnam & Haykin 2009).
+//! state `x = [x, y, b]` (Gentner et al. 2016 §3, §6 and Appendix A; Arasaratnam & Haykin 2009).
 //!
 //! Third-degree spherical-radial cubature with κ = 0: 2n = 6 points `m ± √n·S·eⱼ`, weights
 //! 1/(2n). The covariance is carried as a lower-triangular factor `S` (P = S·Sᵀ) and updated
@@ -8,7 +8,7 @@
 //!
 //! The component's marginal likelihood is `N(z; ẑ, P_zz)` with `P_zz` formed from the
 //! cubature points plus R (DESIGN.md "Component likelihood"): unlike averaging the likelihood
-//! over the points (seed 002 eq. 43), it stays informative for wide, freshly initialized
+//! over the points (Gentner et al. 2016 eq. 43), it stays informative for wide, freshly initialized
 //! components. Cost: 6 measurement evaluations and O(n²·(2n+m)) flops per update.
 
 use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
@@ -232,7 +232,7 @@ fn downdate<const M: usize>(l: &Matrix3<f64>, u: &SMatrix<f64, 3, M>) -> Option<
     Some(l)
 }
 
-/// The plain sigma-point average of the measurement likelihood (seed 002 eq. 43), kept to
+/// The plain sigma-point average of the measurement likelihood (Gentner et al. 2016 eq. 43), kept to
 /// show why it is not used: ln( (1/2n)·Σⱼ N(z; h(Xⱼ), R) ).
 pub fn sigma_point_average_log_likelihood<const M: usize>(
     g: &SqrtGaussian,

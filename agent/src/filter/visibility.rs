@@ -1,4 +1,4 @@
-//! Transmitter visibility on a hex grid (seed 001 eq. 11–12): per transmitter identity and
+//! Transmitter visibility on a hex grid (Ulmschneider et al. 2021 eq. 11–12): per transmitter identity and
 //! hexagon, counters of how often it was seen (C) and not seen (C̄) from there; with the
 //! prior pseudo-counts (ν, ν̄) they form Beta(C + ν, C̄ + ν̄).
 //!

@@ -1,5 +1,5 @@
 //! Von Mises sampling by the Best–Fisher (1979) rejection algorithm, for the heading noise
-//! of the user motion model (seed 002 eq. 17). For very large κ the distribution is normal
+//! of the user motion model (Gentner et al. 2016 eq. 17). For very large κ the distribution is normal
 //! with std 1/√κ to machine precision and that is sampled directly.
 
 use echomap_shared::wrap_angle;

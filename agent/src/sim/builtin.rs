@@ -1,12 +1,12 @@
 //! Built-in scenarios modelled on the papers.
 //!
-//! - `indoor` (seed 001 §V, Fig. 4/6): a 40 m × 24 m floor with a ring corridor around an
+//! - `indoor` (Ulmschneider et al. 2021 §V, Fig. 4/6): a 40 m × 24 m floor with a ring corridor around an
 //!   inner block of two rooms (doorways south and north), eight pillars as point scatterers,
 //!   one transmitter in the west corridor; 1.9 GHz, 100 MHz, 10 Hz, 9-element array.
 //!   Track `reference` (150 m, one loop and a return along its first leg) and 21 further
 //!   tracks `user01`…`user21` that start at different points of the ring, in both directions,
 //!   at different lateral offsets.
-//! - `urban` (seed 002 §6.1, Fig. 6): six buildings around a central block, eight poles,
+//! - `urban` (Gentner et al. 2016 §6.1, Fig. 6): six buildings around a central block, eight poles,
 //!   one transmitter in the south street; 1.5 GHz, 100 MHz, 20 Hz, 9-element array; the track
 //!   `reference` is 500 m at 10 m/s with one loop around the central building.
 //!
@@ -212,7 +212,7 @@ pub fn urban() -> Scenario {
         receiver: Receiver::default(),
         estimator: Estimator {
             fading_correlation_m: 5.0,
-            // seed 002 §6.1 uses only the components observable over at least 35 m of travel
+            // Gentner et al. 2016 §6.1 uses only the components observable over at least 35 m of travel
             min_track_distance_m: 35.0,
             ..Estimator::default()
         },

@@ -1,4 +1,4 @@
-//! Ray tracing by the image method, up to second order (seed 002 §2.1/§6.1, seed 001 Fig. 1).
+//! Ray tracing by the image method, up to second order (Gentner et al. 2016 §2.1/§6.1, Ulmschneider et al. 2021 Fig. 1).
 //!
 //! A path is a sequence of interactions — specular reflections at wall segments and
 //! scattering at point scatterers — between the transmitter and the receiver. Reflection

@@ -132,7 +132,7 @@ pub struct Estimator {
     /// highest interaction order traced (0, 1 or 2)
     pub max_order: u8,
     /// components whose track spans less than this travelled distance (m, first to last
-    /// detection) are left out of the log, as seed 002 §6.1 does with KEST's output ("only
+    /// detection) are left out of the log, as Gentner et al. 2016 §6.1 does with KEST's output ("only
     /// signal components that are observable for a user traveled distance of at least 35 m
     /// are … used"); 0 keeps every component. An offline selection: it needs the whole track
     pub min_track_distance_m: f64,
