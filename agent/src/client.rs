@@ -6,10 +6,19 @@
 
 use echomap_shared::map::TransmitterMap;
 use rand::{RngExt, SeedableRng};
-use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use sha2::{Digest, Sha256};
 use std::time::Duration;
+
+/// A `reqwest` client builder with *ring* installed as the process's rustls crypto provider.
+///
+/// reqwest is built without a provider (`rustls-no-provider`: its default, aws-lc-rs, doubles
+/// the release build's time on two cores) and panics in `build` when none is installed.
+/// Installing it again, or after another one was installed, changes nothing.
+pub fn http_client_builder() -> reqwest::ClientBuilder {
+    let _ = rustls::crypto::ring::default_provider().install_default();
+    reqwest::Client::builder()
+}
 
 /// Client settings.
 #[derive(Debug, Clone)]
@@ -74,18 +83,8 @@ pub enum Fetched {
     NotModified,
 }
 
-/// Body of `POST /v1/maps/{map}/contributions`.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct Contribution {
-    /// agent/device label
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub contributor: Option<String>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub run: Option<String>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub traveled_m: Option<f64>,
-    pub map: TransmitterMap,
-}
+/// Body of `POST /v1/maps/{map}/contributions` (the API's wire type).
+pub use echomap_shared::api::ContributionRequest as Contribution;
 
 /// What the server did with an upload.
 #[derive(Debug, Clone)]
@@ -115,7 +114,7 @@ enum Attempt {
 
 impl MapClient {
     pub fn new(cfg: ClientConfig) -> Result<Self, ClientError> {
-        let http = echomap_server::http::client_builder()
+        let http = http_client_builder()
             .timeout(cfg.timeout)
             .user_agent(concat!("echomap-agent/", env!("CARGO_PKG_VERSION")))
             .build()
@@ -349,4 +348,14 @@ pub fn parse_prior(body: &str) -> Result<PriorMap, ClientError> {
         map,
         body: body.to_owned(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn a_client_for_https_builds() {
+        // without a crypto provider reqwest panics ("No rustls crypto provider is configured")
+        let client = super::http_client_builder().https_only(true).build();
+        assert!(client.is_ok(), "{client:?}");
+    }
 }

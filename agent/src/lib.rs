@@ -6,12 +6,15 @@
 pub mod client;
 pub mod config;
 pub mod crowd;
+#[cfg(feature = "lab")]
 pub mod demo;
 pub mod eval;
 pub mod evaluate;
+#[cfg(feature = "lab")]
 pub mod experiment;
 pub mod files;
 pub mod filter;
+#[cfg(feature = "lab")]
 pub mod local_server;
 pub mod mrclam;
 pub mod output;

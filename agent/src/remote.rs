@@ -109,7 +109,7 @@ impl Remote {
             contributor: Some(self.contributor.clone()),
             run: Some(run.to_owned()),
             traveled_m: Some(out.rows.last().map(|r| r.traveled_m).unwrap_or(0.0)),
-            map: out.map.clone(),
+            map: out.map.clone().into(),
         };
         let outcome = self
             .rt

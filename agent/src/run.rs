@@ -69,7 +69,12 @@ pub fn run_filter_with_prior(
     for (k, snap) in log.snapshots.iter().enumerate() {
         let stats = filter.step(snap);
         if let Some(tr) = tracker.as_mut() {
-            tr.after_step(&mut filter, snap)?;
+            let update = tr.after_step(&filter, snap)?;
+            let fuses = !update.fuse.is_empty();
+            let fused = filter.apply_prior_update(update);
+            if fuses {
+                tr.record_fused(fused);
+            }
         }
         let truth_cols = truth.map(|t| {
             let p = &t.poses[k];

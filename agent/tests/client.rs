@@ -31,7 +31,9 @@ fn contribution() -> Contribution {
         contributor: Some("test".into()),
         run: Some("r1".into()),
         traveled_m: Some(10.0),
-        map: serde_json::from_value::<TransmitterMap>(map_json()).unwrap(),
+        map: serde_json::from_value::<TransmitterMap>(map_json())
+            .unwrap()
+            .into(),
     }
 }
 

@@ -1,9 +1,11 @@
 //! Shared core of echomap: the transmitter-map contract (`echomap.map.v1`), 2D rigid
 //! geometry, Gaussian mixtures and their reduction, the hexagonal visibility grid and the
-//! measurement-log format. Pure and synchronous: no I/O beyond serde, no global state.
+//! measurement-log format, the sensor profile and the HTTP API's wire types. Pure and
+//! synchronous: no I/O beyond serde, no global state.
 //! Both the agent and the map server build on it, so anything exchanged between them is
 //! defined (and validated) here.
 
+pub mod api;
 pub mod fastmath;
 pub mod geometry;
 pub mod hexgrid;

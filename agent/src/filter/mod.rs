@@ -3,13 +3,14 @@
 //! transmitter is a Gaussian mixture over `[x, y, b]` whose components are updated by
 //! square-root cubature Kalman filters. New tracks are associated with old transmitters
 //! (Gentner et al. 2016 §5) or, once the agent's map matches a prior map, with prior-map transmitters
-//! (Ulmschneider et al. 2021 eq. 19, module `prior`), visibility is mapped on a hex grid (Ulmschneider et al. 2021 eq. 11–12), and at the end the
-//! particle ensemble is exported as an `echomap.map.v1` user map.
+//! (Ulmschneider et al. 2021 eq. 19, modules `prior` and `prior_map`), visibility is mapped on
+//! a hex grid (Ulmschneider et al. 2021 eq. 11–12), and at the end the particle ensemble is exported as an `echomap.map.v1` user map.
 
 pub mod config;
 pub mod export;
 pub mod model;
 pub mod prior;
+pub mod prior_map;
 pub mod rbpf;
 pub mod srckf;
 pub mod visibility;

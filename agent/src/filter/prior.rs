@@ -1,6 +1,6 @@
-//! A prior map in the agent's local frame (Ulmschneider et al. 2021 §III): the crowd-sourced map, matched
-//! against the agent's own map while it runs and transformed into its frame, offers its
-//! transmitters as association candidates for new tracks (Ulmschneider et al. 2021 eq. 19).
+//! Tracking a prior map while the agent runs (Ulmschneider et al. 2021 §III): the agent's own
+//! map is matched against the crowd-sourced map, and an accepted match puts the crowd's
+//! transmitters into the agent's frame as a [`Prior`].
 //!
 //! [`PriorTracker`] re-matches periodically: an accepted match (re)places the prior in the
 //! filter with the newer transform; when matching fails and the transform in use no longer
@@ -8,9 +8,8 @@
 //! (transmitters already taken over by particles stay, as the particles' own).
 
 use super::config::FilterConfig;
-use super::model::{Comp, mixture_moments};
+pub use super::prior_map::{Prior, PriorTx, PriorUpdate, TransformUncertainty};
 use super::rbpf::Filter;
-use super::srckf::SqrtGaussian;
 use crate::filter::export::{export_map, track_of};
 use anyhow::Result;
 use echomap_shared::log::Snapshot;
@@ -19,190 +18,11 @@ use echomap_shared::matching::{
     LocationScore, MatchConfig, MatchResult, fit_rigid_correlated, fit_rigid_weighted,
     fit_rigid_weighted_cov, match_maps, score_transform,
 };
-use echomap_shared::{Beta, HexCell, HexGrid};
 use nalgebra::{Isometry2, Matrix2, Matrix3, Point2, Vector2, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 use std::collections::{BTreeMap, BTreeSet};
-use std::ops::AddAssign;
-
-/// One prior-map transmitter, in the agent frame.
-#[derive(Debug, Clone)]
-pub struct PriorTx {
-    /// its id in the prior map
-    pub id: String,
-    pub comps: Vec<Comp>,
-    pub existence: f64,
-    visibility: BTreeMap<HexCell, Beta>,
-    /// the agent's own map already holds this transmitter (a correspondence of the match
-    /// that placed the prior): it is no candidate for new tracks, which would otherwise
-    /// start a second copy of a transmitter the agent still knows and take the prior's
-    /// version instead of associating with its own when it sees it again
-    pub claimed: bool,
-    /// mean and covariance of its state (agent frame), for `FilterConfig::prior_shadow_chi2`
-    pub moments: Option<(Vector3<f64>, Matrix3<f64>)>,
-}
-
-/// Uncertainty of an estimated rigid transform, for inflating what it carries: a point at
-/// `p` (agent frame) gets `var_t·I + var_theta·‖p − centroid‖²·u⊥u⊥ᵀ` added to its position
-/// covariance (u⊥ perpendicular to p − centroid) — the first-order covariance of a 2D rigid
-/// least-squares fit with isotropic residuals.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TransformUncertainty {
-    pub centroid: Point2<f64>,
-    pub var_t: f64,
-    pub var_theta: f64,
-}
-
-impl TransformUncertainty {
-    /// From the agent-frame positions of a match's inliers and their residuals (m): residual
-    /// variance σ² = Σr²/(n − 3) (at least `floor_m²`), var_t = σ²/n, var_θ = σ²/Σ‖pᵢ − c‖².
-    pub fn from_fit(points: &[Point2<f64>], residuals_m: &[f64], floor_m: f64) -> Option<Self> {
-        let n = points.len();
-        if n < 3 || residuals_m.len() != n {
-            return None;
-        }
-        let centroid = Point2::from(
-            points
-                .iter()
-                .map(|p| p.coords)
-                .sum::<nalgebra::Vector2<f64>>()
-                / n as f64,
-        );
-        let spread: f64 = points.iter().map(|p| (p - centroid).norm_squared()).sum();
-        let sigma2 = (residuals_m.iter().map(|r| r * r).sum::<f64>() / (n as f64 - 3.0).max(1.0))
-            .max(floor_m * floor_m);
-        (spread > 0.0).then(|| TransformUncertainty {
-            centroid,
-            var_t: sigma2 / n as f64,
-            var_theta: sigma2 / spread,
-        })
-    }
-
-    /// Raises the variances to at least those of a fit `map_from_agent` with covariance `cov`
-    /// over (θ, t_x, t_y) (`fit_rigid_weighted_cov`): var_θ to `cov_θθ`, var_t to half the
-    /// trace of the covariance of where the fit puts the centroid, `J cov Jᵀ` with
-    /// J = [∂(R·c)/∂θ | I].
-    pub fn widen_to_fit(&mut self, map_from_agent: &Isometry2<f64>, cov: &Matrix3<f64>) {
-        let rc = map_from_agent.rotation * self.centroid.coords;
-        let j = nalgebra::Matrix2x3::new(-rc.y, 1.0, 0.0, rc.x, 0.0, 1.0);
-        let at_centroid = j * cov * j.transpose();
-        self.var_theta = self.var_theta.max(cov[(0, 0)]);
-        self.var_t = self.var_t.max(0.5 * at_centroid.trace());
-    }
-
-    /// The same spread with every variance multiplied by `factor²`.
-    pub fn dispersed(&self, factor: f64) -> Self {
-        TransformUncertainty {
-            centroid: self.centroid,
-            var_t: self.var_t * factor * factor,
-            var_theta: self.var_theta * factor * factor,
-        }
-    }
-
-    /// Std (m) of where the transform puts the point `at`: √(var_t + var_θ·‖at − c‖²).
-    pub fn std_at(&self, at: &Point2<f64>) -> f64 {
-        (self.var_t + self.var_theta * (at - self.centroid).norm_squared()).sqrt()
-    }
-
-    fn extra_cov(&self, at: &Point2<f64>) -> nalgebra::Matrix2<f64> {
-        let d = at - self.centroid;
-        let perp = nalgebra::Vector2::new(-d.y, d.x);
-        nalgebra::Matrix2::identity() * self.var_t + perp * perp.transpose() * self.var_theta
-    }
-}
-
-/// The prior map's transmitters expressed in the agent frame.
-#[derive(Debug, Clone)]
-pub struct Prior {
-    pub agent_from_map: Isometry2<f64>,
-    pub txs: Vec<PriorTx>,
-    /// when set, every particle draws its own correction of `agent_from_map` from this
-    /// spread (see `Filter::set_prior`) instead of the covariances being inflated by it
-    pub spread: Option<TransformUncertainty>,
-    grid: HexGrid,
-    visibility_prior: (f64, f64),
-}
-
-impl Prior {
-    /// Transforms `map` (map frame) into the agent frame, adding the transform's uncertainty
-    /// (when given) to every component. Transmitters whose components are not usable as
-    /// square-root Gaussians are left out.
-    pub fn new(
-        map: &TransmitterMap,
-        agent_from_map: Isometry2<f64>,
-        uncertainty: Option<&TransformUncertainty>,
-        floor_m: f64,
-        visibility_prior: (f64, f64),
-    ) -> Self {
-        let local = map.transformed(&agent_from_map);
-        let txs = local
-            .transmitters()
-            .iter()
-            .filter_map(|t| {
-                let comps: Vec<Comp> = t
-                    .components
-                    .iter()
-                    .filter_map(|c| {
-                        let mut cov = c.cov;
-                        cov[(0, 0)] += floor_m * floor_m;
-                        cov[(1, 1)] += floor_m * floor_m;
-                        if let Some(u) = uncertainty {
-                            let extra = u.extra_cov(&Point2::new(c.mean.x, c.mean.y));
-                            cov.fixed_view_mut::<2, 2>(0, 0).add_assign(&extra);
-                        }
-                        SqrtGaussian::from_cov(c.mean, &cov).map(|g| Comp {
-                            weight: c.weight,
-                            g,
-                        })
-                    })
-                    .collect();
-                if comps.len() != t.components.len() {
-                    return None;
-                }
-                Some(PriorTx {
-                    id: t.id.clone(),
-                    moments: mixture_moments(&comps),
-                    comps,
-                    existence: t.existence,
-                    visibility: t.visibility.clone(),
-                    claimed: false,
-                })
-            })
-            .collect();
-        Prior {
-            agent_from_map,
-            txs,
-            spread: None,
-            grid: HexGrid::new(local.hex_size_m()),
-            visibility_prior,
-        }
-    }
-
-    /// Marks the prior transmitters with these ids (prior map ids) as held by the agent.
-    pub fn claim<'a>(&mut self, ids: impl IntoIterator<Item = &'a str>) {
-        let ids: BTreeSet<&str> = ids.into_iter().collect();
-        for t in &mut self.txs {
-            if ids.contains(t.id.as_str()) {
-                t.claimed = true;
-            }
-        }
-    }
-
-    /// Visibility term of eq. 19 for prior transmitter `idx` at `at` (agent frame): the mean
-    /// of Beta(α + ν, β + ν̄) of the prior's counts in that hexagon.
-    pub fn visibility(&self, idx: usize, at: &Point2<f64>) -> f64 {
-        let cell = self.grid.cell_of(at);
-        let (a, b) = self.txs[idx]
-            .visibility
-            .get(&cell)
-            .map(|b| (b.alpha, b.beta))
-            .unwrap_or((0.0, 0.0));
-        let (nu, nubar) = self.visibility_prior;
-        (a + nu) / (a + b + nu + nubar)
-    }
-}
 
 /// The pose uncertainty an anchor-window detection carries (`PriorSettings::anchor_pose_uncertainty`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -492,7 +312,13 @@ impl PriorTracker {
 
     /// Called after each filter step with its snapshot: records the anchor window's
     /// detections and matches when an attempt is due.
-    pub fn after_step(&mut self, filter: &mut Filter, snap: &Snapshot) -> Result<()> {
+    ///
+    /// Returns what the filter is to do — use a newly placed prior, drop it, fuse matched
+    /// pairs — as a [`PriorUpdate`] for [`Filter::apply_prior_update`]; the tracker reads the
+    /// filter but never changes it. Pass the particle-weighted number of fused pairs that
+    /// the update gave back to [`PriorTracker::record_fused`].
+    pub fn after_step(&mut self, filter: &Filter, snap: &Snapshot) -> Result<PriorUpdate> {
+        let mut update = PriorUpdate::default();
         let t = snap.t;
         let t0 = *self.t0.get_or_insert(t);
         let in_window = filter.has_aoa()
@@ -528,7 +354,7 @@ impl PriorTracker {
             .next_t
             .get_or_insert(t + self.settings.first_match_s.max(0.0));
         if t < next || self.map.is_empty() {
-            return Ok(());
+            return Ok(update);
         }
         self.next_t = Some(t + self.settings.match_every_s.max(1e-3));
         let user = export_map(filter)?;
@@ -626,7 +452,7 @@ impl PriorTracker {
                 let ids: Vec<String> = prior.txs.iter().map(|t| t.id.clone()).collect();
                 prior.claim(ids.iter().map(String::as_str));
             }
-            filter.set_prior(Some(prior));
+            update.prior = Some(Some(prior));
             action
         } else if let Some(still) = in_use {
             if still.inliers >= self.settings.matching.min_inliers {
@@ -634,18 +460,22 @@ impl PriorTracker {
             } else {
                 self.current = None;
                 self.spread = None;
-                filter.set_prior(None);
+                update.prior = Some(None);
                 "dropped"
             }
         } else {
             "none"
         };
-        // pairs of a match under the transform in use: fuse those not fused yet
-        let mut fused = 0.0;
+        // pairs of a match under the transform in use: fuse those not fused yet (indices into
+        // the prior in use once the update is applied)
+        let prior_in_use = match &update.prior {
+            Some(placed) => placed.as_ref(),
+            None => filter.prior(),
+        };
         if self.settings.fuse_matched
             && m.accepted
             && self.current.as_ref().is_some_and(|cur| same(cur, &fit))
-            && let Some(prior) = filter.prior()
+            && let Some(prior) = prior_in_use
         {
             let pairs: Vec<(u64, usize)> = m
                 .correspondences
@@ -658,8 +488,9 @@ impl PriorTracker {
                 })
                 .collect();
             if !pairs.is_empty() {
-                fused = filter.fuse_prior(&pairs, self.settings.matching.inlier_gate_chi2);
                 self.fused.extend(pairs.iter().map(|(t, _)| *t));
+                update.fuse = pairs;
+                update.fuse_gate_chi2 = self.settings.matching.inlier_gate_chi2;
             }
         }
         let a = fit;
@@ -673,10 +504,18 @@ impl PriorTracker {
             action,
             anchors,
             match_angle_rad: m.map_from_agent.rotation.angle(),
-            fused,
+            fused: 0.0,
             reason: m.reason.unwrap_or_default(),
         });
-        Ok(())
+        Ok(update)
+    }
+
+    /// Records on this step's matching attempt how many pairs (particle-weighted) the
+    /// filter fused when it applied the attempt's update.
+    pub fn record_fused(&mut self, fused: f64) {
+        if let Some(e) = self.events.last_mut() {
+            e.fused = fused;
+        }
     }
 
     /// Advances the dead-reckoning covariance to `snap.t` (first call: zero, the initial pose

@@ -12,7 +12,7 @@ use super::config::{Association, FilterConfig};
 use super::model::{
     Comp, Pose, h_toa, h_toa_aoa, initialize, mixture_moments, residual_toa, residual_toa_aoa,
 };
-use super::prior::Prior;
+use super::prior_map::{Prior, PriorUpdate};
 use super::srckf::{self, SqrtGaussian};
 use super::visibility::Visibility;
 use super::vonmises;
@@ -523,6 +523,19 @@ impl Filter {
             p.prior_frame = d;
         }
         self.prior = prior.map(Arc::new);
+    }
+
+    /// Carries out what the prior tracker decided; returns the particle-weighted number of
+    /// fused pairs (0 without fusion).
+    pub fn apply_prior_update(&mut self, update: PriorUpdate) -> f64 {
+        if let Some(prior) = update.prior {
+            self.set_prior(prior);
+        }
+        if update.fuse.is_empty() {
+            0.0
+        } else {
+            self.fuse_prior(&update.fuse, update.fuse_gate_chi2)
+        }
     }
 
     pub fn prior(&self) -> Option<&Prior> {
