@@ -103,10 +103,12 @@ impl Scenario {
     }
 
     /// The sensor profile the simulator writes into its logs: the estimator's noise laws,
-    /// with the floors stated [`PROFILE_FLOOR_MARGIN`] times as large as drawn, since they
-    /// stand for model mismatch and calibration, which a filter should not take as exactly
-    /// known. The gyroscope is left out: its noise is far below the motion-model noise a
-    /// walking user needs, which the filter's default covers.
+    /// stated as a data sheet states error bounds. The floors are [`PROFILE_FLOOR_MARGIN`]
+    /// times as large as drawn, since they stand for model mismatch and calibration, which a
+    /// filter should not take as exactly known; the Cramér–Rao terms at 0 dB are rounded up
+    /// to two significant digits (a bound is never understated). The gyroscope is left out:
+    /// its noise is far below the motion-model noise a walking user needs, which the filter's
+    /// default covers.
     pub fn sensor_profile(&self, aoa: bool) -> SensorProfile {
         let e = &self.estimator;
         let (crlb_d, crlb_a) = self.crlb(0.0);
@@ -123,11 +125,11 @@ impl Scenario {
             )),
             distance_m: Some(NoiseLaw {
                 floor: PROFILE_FLOOR_MARGIN * e.distance_floor_m,
-                at_0db: crlb_d,
+                at_0db: round_up_2_digits(crlb_d),
             }),
             aoa_rad: (aoa && crlb_a.is_finite()).then_some(NoiseLaw {
                 floor: PROFILE_FLOOR_MARGIN * e.aoa_floor_rad,
-                at_0db: crlb_a,
+                at_0db: round_up_2_digits(crlb_a),
             }),
             ..Default::default()
         }
@@ -167,6 +169,16 @@ impl Scenario {
 /// How much larger than drawn the simulator states its noise floors in a log's sensor
 /// profile (see [`Scenario::sensor_profile`]).
 pub const PROFILE_FLOOR_MARGIN: f64 = 1.5;
+
+/// `x > 0` rounded up to two significant digits (0.1461 → 0.15, 0.01149 → 0.012).
+fn round_up_2_digits(x: f64) -> f64 {
+    if !(x.is_finite() && x > 0.0) {
+        return x;
+    }
+    let scale = 10f64.powi(1 - x.log10().floor() as i32);
+    // the tolerance keeps a value already on the grid (0.15·100 = 15.000000000000002) there
+    (x * scale - 1e-9).ceil() / scale
+}
 
 /// Geometry, interaction sequences and trajectory for tracing `track` of `scenario`.
 fn tracing_setup(

@@ -379,3 +379,30 @@ fn unknown_track_is_an_error() {
     let err = simulate(&indoor(), "nope", opts(1)).unwrap_err();
     assert!(err.to_string().contains("user21"));
 }
+
+#[test]
+fn the_simulators_sensor_profile_states_its_noise_as_bounds() {
+    use crate::filter::NoiseModel;
+    // the built-in receiver (100 MHz, 64 samples, 3×3 array): Cramér–Rao terms at 0 dB of
+    // 0.146 m and 0.0115 rad, stated rounded up; floors 1.5× as drawn — which is the filter's
+    // default noise model, so a simulated log with its profile runs as it did without one
+    let s = super::builtin::indoor();
+    let p = s.sensor_profile(true);
+    let (d, a) = (p.distance_m.unwrap(), p.aoa_rad.unwrap());
+    let n = NoiseModel::default();
+    assert_eq!(d.floor, n.distance_floor_m);
+    assert_eq!(d.at_0db, n.distance_at_0db_m);
+    assert_eq!(a.floor, n.aoa_floor_rad);
+    assert_eq!(a.at_0db, n.aoa_at_0db_rad);
+    // stated bounds never fall below the drawn noise
+    for snr in [-10.0, 0.0, 10.0, 30.0] {
+        let (sd, sa) = s.noise_std(snr);
+        assert!(d.std(snr) >= sd && a.std(snr) >= sa, "{snr} dB");
+    }
+    // a single antenna states no angle; another bandwidth another distance law
+    assert!(s.sensor_profile(false).aoa_rad.is_none());
+    let mut narrow = s.clone();
+    narrow.bandwidth_hz = 20e6;
+    let nd = narrow.sensor_profile(true).distance_m.unwrap();
+    assert!(nd.at_0db > 4.0 * d.at_0db && nd.at_0db <= 0.75, "{nd:?}");
+}
