@@ -176,7 +176,7 @@ async fn three_agents_share_a_map_through_a_real_server() {
         firsts.push(agents.swap_remove(0));
     }
     // Over the triples (a single pair can go either way: a map built from two walks of the
-    // same track carries their correlated errors, README "Three agents on one track"): the
+    // same track carries their correlated errors, docs/results/current.md, "Three agents on one track"): the
     // final error of the walk and the error of its shape (ATE, after rigid alignment).
     for key in ["mae_final_m", "ate_m"] {
         let mean = |v: &[Agent]| v.iter().map(|a| a.metric(key)).sum::<f64>() / v.len() as f64;

@@ -35,7 +35,7 @@ pub struct ImportOptions {
     /// SNR written for a measurement at 1 m range (dB). MRCLAM has none; a camera's barcode
     /// image shrinks as 1/range, so the importer writes `snr_db − 20·log10(range / 1 m)`, and
     /// the filter's SNR noise model (`σ = floor ⊕ at_0db·10^(−SNR/20)`) then gives a range
-    /// noise that grows in proportion to the range, as the data's residuals do (README)
+    /// noise that grows in proportion to the range, as the data's residuals do (docs/results/single-user.md)
     pub snr_db: f64,
     /// how late the robot moves after its odometry's time stamps (`--odometry-delay`)
     pub odometry_delay: OdometryDelay,

@@ -6,7 +6,7 @@ use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 use utoipa::ToSchema;
 
-/// Base of the `type` URIs of echomap problems (documented in the README).
+/// Base of the `type` URIs of echomap problems (documented in docs/server.md).
 pub const PROBLEM_BASE: &str = "https://echomap.invalid/problems/";
 pub const PROBLEM_JSON: &str = "application/problem+json";
 

@@ -10,6 +10,7 @@ pub mod delta;
 pub mod error;
 pub mod heads;
 pub mod http;
+pub mod job;
 pub mod merge;
 pub mod metrics;
 pub mod model;

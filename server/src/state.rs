@@ -41,7 +41,7 @@ pub struct AppState {
     pub match_cfg: MatchConfig,
     pub merge_cfg: MergeConfig,
     map_locks: Mutex<HashMap<i64, Arc<tokio::sync::Mutex<()>>>>,
-    merge_queues: Mutex<HashMap<i64, tokio::sync::mpsc::UnboundedSender<crate::worker::Job>>>,
+    merge_queues: Mutex<HashMap<i64, tokio::sync::mpsc::UnboundedSender<crate::job::Job>>>,
     in_flight: Mutex<HashSet<(i64, String, String)>>,
     /// current version per map id; only ever replaced by a newer version
     current: RwLock<HashMap<i64, Arc<CachedVersion>>>,
@@ -130,8 +130,8 @@ impl AppState {
     pub fn merge_queue(
         &self,
         map_id: i64,
-        start: impl FnOnce() -> tokio::sync::mpsc::UnboundedSender<crate::worker::Job>,
-    ) -> tokio::sync::mpsc::UnboundedSender<crate::worker::Job> {
+        start: impl FnOnce() -> tokio::sync::mpsc::UnboundedSender<crate::job::Job>,
+    ) -> tokio::sync::mpsc::UnboundedSender<crate::job::Job> {
         self.merge_queues
             .lock()
             .expect("queue table poisoned")

@@ -8,7 +8,7 @@
 //! maps commit in parallel.
 //!
 //! Every query is one static string with bound parameters (`$1`, valid on both databases),
-//! written once and compiled for each backend by the [`on_reader!`] and [`in_write_tx!`]
+//! written once and compiled for each backend by the `on_reader!` and `in_write_tx!`
 //! macros. Writers check that the map's `current_version` is still the one they matched against
 //! before committing (optimistic concurrency), so several server processes on one database
 //! cannot lose updates; inside one process merges of a map are additionally serialized by a

@@ -9,28 +9,18 @@
 use crate::api::ContributionAccepted;
 use crate::delta::{self, Encoding};
 use crate::error::{ApiError, ApiResult, problem_body};
+pub use crate::job::Job;
 use crate::merge::{Outcome, correspondences, integrate, seed_of};
 use crate::state::{AppState, MapRef, SharedState, render_json};
-use crate::storage::{CommitError, NewContribution, NewVersion, PendingCommit, Respond};
+use crate::storage::{CommitError, NewVersion, PendingCommit, Respond};
 use echomap_shared::geometry::Transform2;
 use echomap_shared::map::TransmitterMap;
 use std::sync::Arc;
 use std::time::Instant;
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::mpsc;
 
 /// Most uploads committed in one transaction.
 pub const MAX_BATCH: usize = 64;
-
-/// One validated upload waiting for its merge.
-#[derive(Debug)]
-pub struct Job {
-    pub user: Arc<TransmitterMap>,
-    /// hex SHA-256 of the request body (RANSAC seed, idempotency check)
-    pub sha256: String,
-    /// the row to store; outcome fields are filled in by the worker
-    pub contribution: NewContribution,
-    pub reply: oneshot::Sender<ApiResult<(u16, Vec<u8>)>>,
-}
 
 /// Queues `job` on the worker of `row`'s map (starting it if needed).
 pub fn submit(app: &SharedState, row: &MapRef, job: Job) -> Result<(), ApiError> {

@@ -43,16 +43,20 @@ pub fn rotation(angle_rad: f64) -> Matrix2<f64> {
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[serde(deny_unknown_fields)]
 pub struct Transform2 {
+    /// rotation angle θ (rad, counter-clockwise)
     pub angle_rad: f64,
+    /// translation t (m): p_to = R(θ)·p_from + t
     pub translation: [f64; 2],
 }
 
 impl Transform2 {
+    /// the identity transform
     pub const IDENTITY: Transform2 = Transform2 {
         angle_rad: 0.0,
         translation: [0.0, 0.0],
     };
 
+    /// as a nalgebra isometry
     pub fn to_isometry(self) -> Isometry2<f64> {
         Isometry2::new(
             Vector2::new(self.translation[0], self.translation[1]),
@@ -60,6 +64,7 @@ impl Transform2 {
         )
     }
 
+    /// from a nalgebra isometry
     pub fn from_isometry(iso: &Isometry2<f64>) -> Self {
         Transform2 {
             angle_rad: wrap_angle(iso.rotation.angle()),
@@ -67,6 +72,7 @@ impl Transform2 {
         }
     }
 
+    /// whether angle and translation are finite
     pub fn is_finite(&self) -> bool {
         self.angle_rad.is_finite() && self.translation.iter().all(|v| v.is_finite())
     }

@@ -10,7 +10,9 @@ use serde::{Deserialize, Serialize};
 /// Axial coordinates of one hexagon.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 pub struct HexCell {
+    /// axial column
     pub q: i32,
+    /// axial row
     pub r: i32,
 }
 
@@ -34,6 +36,7 @@ impl HexGrid {
         }
     }
 
+    /// circumradius of a hexagon (m)
     pub fn size_m(&self) -> f64 {
         self.size_m
     }

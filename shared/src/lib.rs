@@ -1,3 +1,4 @@
+#![warn(missing_docs)]
 //! Shared core of echomap: the transmitter-map contract (`echomap.map.v1`), 2D rigid
 //! geometry, Gaussian mixtures and their reduction, the hexagonal visibility grid and the
 //! measurement-log format, the sensor profile and the HTTP API's wire types. Pure and

@@ -29,15 +29,22 @@ use std::collections::HashSet;
 use std::io::Write;
 use thiserror::Error;
 
+/// the `format` of a measurement log's header
 pub const LOG_FORMAT: &str = "echomap.log.v1";
+/// the `format` of a ground-truth document
 pub const TRUTH_FORMAT: &str = "echomap.truth.v1";
 
+/// The first line of a measurement log.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LogHeader {
+    /// `echomap.log.v1`
     pub format: String,
+    /// snapshots per second (Hz)
     pub snapshot_rate_hz: f64,
+    /// whether components carry an angle of arrival
     pub aoa: bool,
+    /// whether snapshots carry a measured speed
     #[serde(default)]
     pub speed: bool,
     /// How long a track stays alive without being detected (s): logs whose detections are
@@ -54,27 +61,33 @@ pub struct LogHeader {
     pub sensor: Option<SensorProfile>,
 }
 
+/// One detected propagation path of a snapshot.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Measurement {
+    /// track id: the same while the estimator tracks the path continuously
     pub track: u64,
     /// propagation distance c·τ (m)
     pub d: f64,
     /// angle of arrival relative to the heading (rad), present iff the header says `aoa`
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub aoa: Option<f64>,
+    /// per-sample signal-to-noise ratio (dB)
     pub snr_db: f64,
 }
 
+/// One snapshot: odometry and the paths detected in it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Snapshot {
+    /// time (s), strictly increasing
     pub t: f64,
     /// mean heading rate over the interval ending at `t` (rad/s)
     pub gyro: f64,
     /// measured speed (m/s), when the header says `speed`
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub speed: Option<f64>,
+    /// the detected paths
     pub components: Vec<Measurement>,
     /// Whether the snapshot carries a channel estimate. `false`: motion only — the sensor
     /// delivered no estimate in this interval (a camera or estimator slower than the snapshot
@@ -92,9 +105,12 @@ fn is_true(b: &bool) -> bool {
     *b
 }
 
+/// A parsed and checked measurement log.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MeasurementLog {
+    /// the header line
     pub header: LogHeader,
+    /// every snapshot, in time order
     pub snapshots: Vec<Snapshot>,
 }
 
@@ -102,7 +118,9 @@ pub struct MeasurementLog {
 #[derive(Debug, Error, PartialEq)]
 #[error("line {line}: {message}")]
 pub struct LogError {
+    /// 1-based line number
     pub line: usize,
+    /// what is wrong
     pub message: String,
 }
 
@@ -166,6 +184,7 @@ impl MeasurementLog {
         Ok(())
     }
 
+    /// The log as JSON Lines text.
     pub fn to_jsonl(&self) -> String {
         let mut buf = Vec::new();
         self.write_to(&mut buf).expect("writing to memory");
@@ -229,10 +248,15 @@ fn check_snapshot(h: &LogHeader, s: &Snapshot, last_t: f64) -> Result<(), String
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TruePose {
+    /// time (s)
     pub t: f64,
+    /// position x (m, local frame)
     pub x: f64,
+    /// position y (m, local frame)
     pub y: f64,
+    /// heading (rad, counter-clockwise from the initial heading)
     pub heading_rad: f64,
+    /// speed (m/s)
     pub speed_mps: f64,
 }
 
@@ -240,6 +264,7 @@ pub struct TruePose {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrueTransmitter {
+    /// the track id of the log
     pub track: u64,
     /// `[x, y, b]`
     pub state: [f64; 3],
@@ -249,17 +274,22 @@ pub struct TrueTransmitter {
     pub path: String,
 }
 
+/// The truth behind a simulated or recorded log (`echomap.truth.v1`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct GroundTruth {
+    /// `echomap.truth.v1`
     pub format: String,
     /// maps local coordinates into the world (scenario) frame
     pub world_from_local: Transform2,
+    /// the true pose at every snapshot
     pub poses: Vec<TruePose>,
+    /// the true (virtual) transmitter behind every track id
     pub transmitters: Vec<TrueTransmitter>,
 }
 
 impl GroundTruth {
+    /// Parses and checks a ground-truth document.
     pub fn parse(text: &str) -> Result<Self, String> {
         let g: GroundTruth =
             serde_json::from_str(text).map_err(|e| format!("bad ground truth: {e}"))?;

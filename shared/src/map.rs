@@ -20,12 +20,17 @@ use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashSet};
 use thiserror::Error;
 
+/// the `format` of a transmitter map
 pub const MAP_FORMAT: &str = "echomap.map.v1";
 /// Hexagon circumradius of visibility grids unless a map says otherwise (metres).
 pub const DEFAULT_HEX_SIZE_M: f64 = 2.0;
+/// most transmitters a map may hold
 pub const MAX_TRANSMITTERS: usize = 10_000;
+/// most mixture components a transmitter may hold
 pub const MAX_COMPONENTS: usize = 64;
+/// most visibility cells a map may hold, over all transmitters
 pub const MAX_VISIBILITY_CELLS: usize = 100_000;
+/// longest transmitter id (characters)
 pub const MAX_ID_LEN: usize = 128;
 /// Tolerance on `|Σ weights − 1|`.
 pub const WEIGHT_SUM_TOLERANCE: f64 = 1e-6;
@@ -37,36 +42,62 @@ pub const SYMMETRY_TOLERANCE: f64 = 1e-9;
 #[derive(Debug, Clone, PartialEq, Error)]
 #[error("{path}: {kind}")]
 pub struct MapError {
+    /// the field at fault
     pub path: String,
+    /// what is wrong with it
     pub kind: MapErrorKind,
 }
 
+/// What is wrong with a field of a map.
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum MapErrorKind {
+    /// the `format` is not `echomap.map.v1`
     #[error("unsupported format {0:?}, expected \"echomap.map.v1\"")]
     Format(String),
+    /// a number is NaN or infinite
     #[error("value is not a finite number")]
     NotFinite,
+    /// a number that must be positive is not
     #[error("must be > 0, got {0}")]
     NotPositive(f64),
+    /// a number that must not be negative is
     #[error("must be ≥ 0, got {0}")]
     Negative(f64),
+    /// a probability outside [0, 1]
     #[error("must lie in [0, 1], got {0}")]
     NotProbability(f64),
+    /// mixture weights that do not sum to 1
     #[error("weights sum to {0}, expected 1 (±1e-6)")]
     WeightSum(f64),
+    /// a covariance that is not symmetric
     #[error("covariance is not symmetric")]
     NotSymmetric,
+    /// a covariance that is not positive definite
     #[error("covariance is not positive definite")]
     NotPositiveDefinite,
+    /// two transmitters with the same id
     #[error("duplicate id {0:?}")]
     DuplicateId(String),
+    /// a visibility cell given twice (axial q, r)
     #[error("duplicate visibility cell (q={q}, r={r})")]
-    DuplicateCell { q: i32, r: i32 },
+    DuplicateCell {
+        /// axial column
+        q: i32,
+        /// axial row
+        r: i32,
+    },
+    /// an empty, overlong or unprintable id
     #[error("id must be 1–128 printable characters")]
     BadId,
+    /// more entries than the format allows
     #[error("too many entries: {count} > limit {limit}")]
-    TooMany { count: usize, limit: usize },
+    TooMany {
+        /// how many there are
+        count: usize,
+        /// how many the format allows
+        limit: usize,
+    },
+    /// a list that must not be empty is
     #[error("must not be empty")]
     Empty,
 }
@@ -90,10 +121,15 @@ pub struct Beta {
 /// One (virtual) transmitter.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Transmitter {
+    /// unique id within the map
     pub id: String,
+    /// Gaussian mixture over `[x, y, b]`
     pub components: Vec<Component>,
+    /// belief that the transmitter exists, in [0, 1]
     pub existence: f64,
+    /// distance walked while it was visible (m)
     pub reliability_m: f64,
+    /// Beta evidence of being seen, per hexagon
     pub visibility: BTreeMap<HexCell, Beta>,
 }
 
@@ -127,26 +163,32 @@ impl TransmitterMap {
         Self::new(hex_size_m, Vec::new())
     }
 
+    /// circumradius of the visibility grid's hexagons (m)
     pub fn hex_size_m(&self) -> f64 {
         self.hex_size_m
     }
 
+    /// the transmitters, in id order
     pub fn transmitters(&self) -> &[Transmitter] {
         &self.transmitters
     }
 
+    /// the transmitters, by value
     pub fn into_transmitters(self) -> Vec<Transmitter> {
         self.transmitters
     }
 
+    /// the visibility grid
     pub fn grid(&self) -> HexGrid {
         HexGrid::new(self.hex_size_m)
     }
 
+    /// number of transmitters
     pub fn len(&self) -> usize {
         self.transmitters.len()
     }
 
+    /// whether the map has no transmitter
     pub fn is_empty(&self) -> bool {
         self.transmitters.is_empty()
     }
@@ -163,6 +205,7 @@ impl TransmitterMap {
         wire::convert(doc)
     }
 
+    /// The map as indented `echomap.map.v1` JSON.
     pub fn to_json_pretty(&self) -> String {
         serde_json::to_string_pretty(self).expect("a validated map always serializes")
     }
@@ -386,8 +429,10 @@ fn check_transmitter(t: &Transmitter) -> Result<(), (Where, MapErrorKind)> {
 /// Why a JSON map document was rejected: not JSON / wrong shape, or invalid content.
 #[derive(Debug, Error)]
 pub enum ParseError {
+    /// not JSON, or not the shape of a map
     #[error("malformed map JSON: {0}")]
     Syntax(String),
+    /// the shape is right but a value is not
     #[error("invalid map: {0}")]
     Invalid(MapError),
 }
@@ -398,43 +443,62 @@ pub enum ParseError {
 pub mod wire {
     use super::*;
 
+    /// A map as JSON carries it.
     #[derive(Debug, Clone, Serialize, Deserialize)]
     #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
     #[serde(deny_unknown_fields)]
     pub struct MapDoc {
+        /// `echomap.map.v1`
         pub format: String,
+        /// circumradius of the visibility hexagons (m)
         pub hex_size_m: f64,
+        /// the transmitters
         pub transmitters: Vec<TransmitterDoc>,
     }
 
+    /// A transmitter as JSON carries it.
     #[derive(Debug, Clone, Serialize, Deserialize)]
     #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
     #[serde(deny_unknown_fields)]
     pub struct TransmitterDoc {
+        /// unique id within the map
         pub id: String,
+        /// Gaussian mixture over `[x, y, b]`
         pub components: Vec<ComponentDoc>,
+        /// belief that it exists, in [0, 1]
         pub existence: f64,
+        /// distance walked while it was visible (m)
         pub reliability_m: f64,
+        /// Beta evidence per hexagon
         #[serde(default)]
         pub visibility: Vec<CellDoc>,
     }
 
+    /// A mixture component as JSON carries it.
     #[derive(Debug, Clone, Serialize, Deserialize)]
     #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
     #[serde(deny_unknown_fields)]
     pub struct ComponentDoc {
+        /// weight, > 0; a mixture's weights sum to 1
         pub weight: f64,
+        /// mean `[x, y, b]` (m)
         pub mean: [f64; 3],
+        /// covariance (m², symmetric positive definite)
         pub cov: [[f64; 3]; 3],
     }
 
+    /// A visibility cell as JSON carries it.
     #[derive(Debug, Clone, Serialize, Deserialize)]
     #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
     #[serde(deny_unknown_fields)]
     pub struct CellDoc {
+        /// axial column
         pub q: i32,
+        /// axial row
         pub r: i32,
+        /// evidence of being seen from the cell
         pub alpha: f64,
+        /// evidence of not being seen from the cell
         pub beta: f64,
     }
 

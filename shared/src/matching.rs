@@ -48,6 +48,7 @@ pub struct MatchConfig {
     pub distance_tolerance_m: f64,
     /// clock-offset gate: |b_u − b_p| ≤ gate_sigma·√(σ_u² + σ_p²) + floor; defaults 3, 0.5 m
     pub b_gate_sigma: f64,
+    /// the floor of the clock-offset gate (m)
     pub b_gate_floor_m: f64,
     /// accept only with at least this many inliers; default 5
     pub min_inliers: usize,
@@ -101,8 +102,11 @@ pub enum LocationScore {
     /// up to 2·ln(1/k) more per inlier than a loose fit with the same count. Not the
     /// default: on MRCLAM it matched 530 instead of 438 of 600 contributor-map pairs right,
     /// but on the end-to-end test's indoor triples (two walks of one track) the last agent's
-    /// final error rose in all four (README, "Cooperative Channel-SLAM")
-    Likelihood { min_scale: f64 },
+    /// final error rose in all four (docs/results/cooperative.md)
+    Likelihood {
+        /// the least covariance scale the fit may take
+        min_scale: f64,
+    },
 }
 
 impl LocationScore {
@@ -189,7 +193,7 @@ impl MatchConfig {
     /// location alone. Location alone suits sensors whose detections depend on the heading
     /// (a camera's field of view, MRCLAM): their seen/unseen counts per hexagon are not a
     /// property of the place, and on MRCLAM dataset 6 the term made the wrong transform win
-    /// more often (README, "Cooperative Channel-SLAM").
+    /// more often (docs/results/cooperative.md).
     pub fn with_visibility_weight(self, weight: f64) -> Self {
         MatchConfig {
             use_visibility: weight > 0.0,
@@ -210,6 +214,7 @@ impl MatchConfig {
 /// Outcome of matching.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MatchResult {
+    /// whether the match passed the acceptance test
     pub accepted: bool,
     /// maps agent-frame coordinates into the map frame
     pub map_from_agent: Isometry2<f64>,
@@ -217,12 +222,15 @@ pub struct MatchResult {
     pub correspondences: Vec<(usize, usize)>,
     /// distance after transformation of each correspondence (m)
     pub residuals_m: Vec<f64>,
+    /// number of inlier pairs
     pub inliers: usize,
     /// location score + visibility score of the chosen hypothesis
     pub score: f64,
+    /// the visibility term of the score
     pub visibility_score: f64,
     /// why the match was rejected
     pub reason: Option<String>,
+    /// RANSAC iterations run
     pub iterations: usize,
 }
 
@@ -789,11 +797,13 @@ fn visibility_score(
 /// with a new one.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TransformScore {
+    /// one-to-one inlier pairs under the transform
     pub inliers: usize,
     /// comparable with [`MatchResult::score`] of a match between the same two maps
     pub score: f64,
 }
 
+/// Scores `map_from_agent` on `user` against `prior` (see [`TransformScore`]).
 pub fn score_transform(
     user: &TransmitterMap,
     prior: &TransmitterMap,

@@ -17,7 +17,7 @@
 //! into the nearest such transmitter by the same rule instead of being added. RANSAC takes at
 //! most one correspondence per transmitter, so a landmark a user mapped twice (once per track
 //! of it, when association did not close the loop) would otherwise enter the crowd's map as a
-//! second copy on every upload (README, "Cooperative Channel-SLAM", 2026-12-03).
+//! second copy on every upload (docs/results/cooperative.md, 2026-12-03).
 
 use crate::map::{MapError, Transmitter, TransmitterMap};
 use crate::mixture::{self, Component};

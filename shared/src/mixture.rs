@@ -17,20 +17,27 @@ use thiserror::Error;
 /// One weighted Gaussian component.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Component {
+    /// weight, > 0
     pub weight: f64,
+    /// mean `[x, y, b]` (m)
     pub mean: Vector3<f64>,
+    /// covariance (m²)
     pub cov: Matrix3<f64>,
 }
 
+/// Why a mixture was refused.
 #[derive(Debug, Error, PartialEq)]
 pub enum MixtureError {
+    /// no component
     #[error("mixture is empty")]
     Empty,
+    /// the weights do not sum to a positive finite number
     #[error("mixture weights sum to {0}, cannot normalize")]
     BadWeights(f64),
 }
 
 impl Component {
+    /// A component of weight `weight`.
     pub fn new(weight: f64, mean: Vector3<f64>, cov: Matrix3<f64>) -> Self {
         Component { weight, mean, cov }
     }

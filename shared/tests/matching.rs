@@ -320,7 +320,7 @@ fn unrelated_maps_are_rejected() {
 fn mirror_images_are_not_rotations() {
     // A chiral layout and its mirror image (x → −x), in many frames: no proper rigid motion
     // maps one onto the other, so nothing is accepted. (Random worlds of 12+ transmitters
-    // can contain a mirror-symmetric subset by chance — see the README's matching status.)
+    // can contain a mirror-symmetric subset by chance — see docs/matching.md.)
     let pts = [
         [0.0, 0.0, 0.0],
         [10.0, 0.0, 0.0],

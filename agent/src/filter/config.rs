@@ -52,7 +52,7 @@ pub enum BPrior {
 }
 
 /// Measurement noise the filter assumes, as a function of the reported per-sample SNR γ (dB):
-/// `σ = √(floor² + (at_0db · 10^(−γ/20))²)` — the shape of the CRLB (see the README).
+/// `σ = √(floor² + (at_0db · 10^(−γ/20))²)` — the shape of the CRLB (see docs/model.md).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct NoiseModel {
     pub distance_floor_m: f64,

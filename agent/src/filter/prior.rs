@@ -33,7 +33,7 @@ pub enum AnchorPose {
     /// the particles' covariance of (x, y, heading) at the detection. The particles see
     /// the pose relative to their own maps: resampling on detections of transmitters that
     /// were themselves placed from the drifting track narrows their heading spread below
-    /// the heading's error in the local frame (README, 2026-12-04)
+    /// the heading's error in the local frame (docs/results/cooperative.md, 2026-12-04)
     Particles,
     /// the dead-reckoning covariance since the first snapshot: the motion model's noise
     /// (`heading_noise_*`, the speed's) propagated along the gyro and speed alone, an upper
@@ -68,8 +68,7 @@ pub struct PriorSettings {
     /// by k (the fit's σ comes from residuals and misses the drift the agent's map shares
     /// with its track, so the draws are dispersed); `None` — every prior covariance is
     /// inflated by the spread instead. Default `None`: with a perfect map the draws lowered
-    /// the median final error on six seeds but made single runs worse (README, "Cooperative
-    /// Channel-SLAM")
+    /// the median final error on six seeds but made single runs worse (docs/results/cooperative.md)
     pub transform_draws: Option<f64>,
     /// the detections of the log's first this many seconds anchor the transform (s; 0 turns
     /// it off): the local frame is the agent's first pose, and only while its pose is still
@@ -80,7 +79,7 @@ pub struct PriorSettings {
     /// three agree. Needs angles of arrival. Default 0 (off): it lowered the first match's
     /// rotation error from 0.021 to 0.010 rad on eight seeds with a known map (unit test),
     /// but over the 10-run indoor cooperative experiment it gave no consistent gain (c21
-    /// final MAE median 0.70 m against 0.67 m without; README)
+    /// final MAE median 0.70 m against 0.67 m without; docs/results/cooperative.md)
     pub anchor_window_s: f64,
     /// whether and how the anchor points carry the agent's pose uncertainty at each
     /// detection (a covariance of x, y and heading, the heading's lever arm being the

@@ -49,7 +49,7 @@ impl Visibility {
         }
     }
 
-    /// Posterior mean visibility E[M] = (C + ν)/(C + C̄ + ν + ν̄) of `identity` from `cell`.
+    /// Posterior mean visibility E\[M\] = (C + ν)/(C + C̄ + ν + ν̄) of `identity` from `cell`.
     pub fn probability(&self, identity: usize, cell: HexCell) -> f64 {
         let (c, cbar) = self
             .counts

@@ -1,5 +1,5 @@
 //! Scenario files (JSON): the environment, the radio and estimator settings, and user tracks.
-//! Every field is documented in the README; unknown fields and invalid values are rejected
+//! Every field is documented in docs/formats.md; unknown fields and invalid values are rejected
 //! with a message naming the field.
 
 use serde::{Deserialize, Serialize};

@@ -1,7 +1,7 @@
 //! Contributions: upload (idempotent, matched and merged into a new version), list, roll back.
 
+use super::common::{authorize_read, authorize_write, json_response, rfc3339, validate_map};
 use super::extract::{JsonBytes, parse_json};
-use super::maps::{authorize_read, authorize_write, json_response, rfc3339};
 use crate::api::{
     ContributionAccepted, ContributionInfo, ContributionPage, ContributionRequest, RolledBack,
 };
@@ -14,17 +14,8 @@ use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use echomap_shared::map::TransmitterMap;
-use echomap_shared::map::wire::MapDoc;
 use serde::Deserialize;
 use std::sync::Arc;
-
-/// Validates a wire map; errors name the field under `prefix`.
-pub fn validate_map(doc: MapDoc, prefix: &str) -> ApiResult<TransmitterMap> {
-    TransmitterMap::from_doc(doc).map_err(|e| ApiError::Invalid {
-        field: format!("{prefix}.{}", e.path),
-        detail: e.kind.to_string(),
-    })
-}
 
 fn check_text(field: &str, v: &Option<String>) -> ApiResult<()> {
     match v {

@@ -1,11 +1,12 @@
 //! Maps: list, create, current version (conditional GET), past versions, read-only matching.
 
+use super::common::{authorize_read, authorize_write, json_response, rfc3339, validate_map};
 use super::extract::{JsonBytes, parse_json};
 use crate::api::{CreateMap, MapInfo, MapList, MatchAnswer, MatchRequest};
 use crate::error::{ApiError, ApiResult, Problem};
 use crate::merge::{correspondences, seed_of, sha256_hex};
 use crate::model::MapName;
-use crate::state::{AppState, MapRef, SharedState};
+use crate::state::SharedState;
 use crate::storage::MapRow;
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -15,11 +16,6 @@ use echomap_shared::map::TransmitterMap;
 use echomap_shared::matching::match_maps;
 use rand::SeedableRng;
 
-pub fn rfc3339(ms: i64) -> String {
-    let t = std::time::UNIX_EPOCH + std::time::Duration::from_millis(ms.max(0) as u64);
-    humantime::format_rfc3339_millis(t).to_string()
-}
-
 fn info(row: &MapRow) -> MapInfo {
     MapInfo {
         name: row.name.clone(),
@@ -28,50 +24,6 @@ fn info(row: &MapRow) -> MapInfo {
         private: row.private,
         created: rfc3339(row.created_ms),
     }
-}
-
-/// Writes need a token allowed for the map (401 without one, 403 for another map).
-pub fn authorize_write(
-    app: &AppState,
-    name: &MapName,
-    headers: &HeaderMap,
-) -> ApiResult<crate::auth::Principal> {
-    let who = app.tokens.require(headers)?;
-    if who.may_write(name.as_str()) {
-        Ok(who)
-    } else {
-        Err(ApiError::Forbidden(format!(
-            "token may not write map {name:?}"
-        )))
-    }
-}
-
-/// Reads of a private map need a token allowed for it.
-pub fn authorize_read(app: &AppState, row: &MapRef, headers: &HeaderMap) -> ApiResult<()> {
-    if !row.private {
-        return Ok(());
-    }
-    let who = app.tokens.require(headers)?;
-    if who.may_write(&row.name) {
-        Ok(())
-    } else {
-        Err(ApiError::Forbidden(format!(
-            "map {:?} is private",
-            row.name
-        )))
-    }
-}
-
-pub fn json_response(status: StatusCode, body: impl Into<axum::body::Body>) -> Response {
-    (
-        status,
-        [(
-            header::CONTENT_TYPE,
-            HeaderValue::from_static("application/json"),
-        )],
-        body.into(),
-    )
-        .into_response()
 }
 
 fn to_json<T: serde::Serialize>(status: StatusCode, v: &T) -> ApiResult<Response> {
@@ -255,7 +207,7 @@ pub async fn match_map(
         app.check_rate(&who).await?;
     }
     let req: MatchRequest = parse_json(&body)?;
-    let user = crate::routes::contributions::validate_map(req.map, "map")?;
+    let user = validate_map(req.map, "map")?;
     let cur = app.current(&row).await?;
     let Some(prior) = cur.map.clone().filter(|m| !m.is_empty()) else {
         return to_json(

@@ -1,6 +1,7 @@
 //! Every route of the server, declared in one place. The OpenAPI document is collected from the
 //! same declarations, so it cannot miss a route.
 
+mod common;
 mod contributions;
 mod extract;
 mod maps;

@@ -10,7 +10,7 @@ use axum::response::{IntoResponse, Response};
 /// Liveness: the process serves requests.
 #[utoipa::path(get, path = "/healthz", tag = "operations", responses((status = 200, body = Health)))]
 pub async fn healthz() -> Response {
-    super::maps::json_response(StatusCode::OK, r#"{"status":"ok"}"#)
+    super::common::json_response(StatusCode::OK, r#"{"status":"ok"}"#)
 }
 
 /// Readiness: the database answers and every migration is applied.
@@ -18,7 +18,7 @@ pub async fn healthz() -> Response {
     responses((status = 200, body = Health), (status = 503, body = Problem)))]
 pub async fn readyz(State(app): State<SharedState>) -> ApiResult<Response> {
     match app.storage.ready().await {
-        Ok(true) => Ok(super::maps::json_response(
+        Ok(true) => Ok(super::common::json_response(
             StatusCode::OK,
             r#"{"status":"ready"}"#,
         )),
