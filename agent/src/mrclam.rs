@@ -41,6 +41,20 @@ pub struct ImportOptions {
     pub odometry_delay: OdometryDelay,
 }
 
+impl ImportOptions {
+    /// The importer's defaults for `robot`: a track gap of 5 s, 10 Hz snapshots, 20 dB at 1 m,
+    /// the odometry's time stamps as they are.
+    pub fn robot(robot: u32) -> Self {
+        ImportOptions {
+            robot,
+            track_gap_s: 5.0,
+            rate_hz: 10.0,
+            snr_db: 20.0,
+            odometry_delay: OdometryDelay::Fixed(0.0),
+        }
+    }
+}
+
 /// The delay between MRCLAM's odometry time stamps and the motion they describe. MRCLAM's
 /// odometry is the commanded velocity, and the robot follows its commands a fraction of a
 /// second late; the landmark bearings, stamped by the camera, show it.

@@ -306,20 +306,26 @@ fn the_configuration_comes_from_the_sensor_profile_a_file_and_flags_and_says_so(
 
     // an unknown key is refused, named, and nothing is written
     std::fs::write(&file, "[motion]\nheading_noise = 0.02\n").unwrap();
-    let out = dir.path().join("refused");
+    let err = refused_run(&sim, &[std::ffi::OsStr::new("--config"), file.as_os_str()]);
+    assert!(err.contains("motion.heading_noise"), "{err}");
+}
+
+/// Runs `run --quiet --log LOG EXTRA… --out DIR`, which must fail and write nothing; returns
+/// what it printed on stderr.
+fn refused_run(log: &Path, extra: &[&std::ffi::OsStr]) -> String {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
     let st = agent()
         .args(["run", "--quiet", "--log"])
-        .arg(&sim)
-        .arg("--config")
-        .arg(&file)
+        .arg(log)
+        .args(extra)
         .arg("--out")
         .arg(&out)
         .output()
         .unwrap();
     assert!(!st.status.success());
-    let err = String::from_utf8_lossy(&st.stderr);
-    assert!(err.contains("motion.heading_noise"), "{err}");
-    assert!(!out.exists());
+    assert!(!out.exists(), "a refused run wrote {}", out.display());
+    String::from_utf8_lossy(&st.stderr).into_owned()
 }
 
 #[test]
@@ -332,18 +338,8 @@ fn run_on_a_malformed_log_names_the_line_and_writes_nothing() {
         "{\"format\":\"echomap.log.v1\",\"snapshot_rate_hz\":10.0,\"aoa\":true}\n{\"t\":0.0,\"gyro\":0.0,\"components\":[]}\n{\"t\":0.1,\"gyro\":0.0,\"components\":[{\"track\":1,\"d\":\"far\",\"aoa\":0.0,\"snr_db\":3}]}\n",
     )
     .unwrap();
-    let out = dir.path().join("out");
-    let st = agent()
-        .args(["run", "--quiet", "--log"])
-        .arg(&log)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(!st.status.success());
-    let err = String::from_utf8_lossy(&st.stderr);
+    let err = refused_run(&log, &[]);
     assert!(err.contains("line 3"), "{err}");
-    assert!(!out.exists());
 }
 
 fn chiral_map(frame: nalgebra::Isometry2<f64>, prefix: &str) -> echomap_shared::TransmitterMap {

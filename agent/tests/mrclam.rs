@@ -3,8 +3,7 @@
 
 use echomap_agent::config::{Layers, resolve};
 use echomap_agent::mrclam::{
-    ImportOptions, OdometryDelay, OdometryIntegral, dead_reckoning, estimate_robot_delay, import,
-    parse_table,
+    ImportOptions, OdometryIntegral, dead_reckoning, estimate_robot_delay, import, parse_table,
 };
 use echomap_agent::run::run_filter;
 use std::path::PathBuf;
@@ -30,17 +29,7 @@ fn slam_beats_dead_reckoning_on_real_robots() {
     // line of sight only) at 400 particles: the mean MAE (Ulmschneider et al. 2021 eq. 27)
     // over the run must be at most 60 % of the dead-reckoning error of the same odometry.
     for robot in [1, 3] {
-        let (log, truth) = import(
-            &dir,
-            ImportOptions {
-                robot,
-                track_gap_s: 5.0,
-                rate_hz: 10.0,
-                snr_db: 20.0,
-                odometry_delay: OdometryDelay::Fixed(0.0),
-            },
-        )
-        .unwrap();
+        let (log, truth) = import(&dir, ImportOptions::robot(robot)).unwrap();
         assert!(
             truth.transmitters.len() > 15,
             "track gaps split landmarks into several tracks"

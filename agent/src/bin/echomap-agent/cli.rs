@@ -527,11 +527,10 @@ pub fn run(cli: Cli) -> Result<()> {
         }
         Command::Import(ImportCommand::Mrclam(a)) => {
             let opts = ImportOptions {
-                robot: a.robot,
                 track_gap_s: a.track_gap,
                 rate_hz: a.rate,
-                snr_db: 20.0,
                 odometry_delay: a.odometry_delay,
+                ..ImportOptions::robot(a.robot)
             };
             let (log, truth) = mrclam::import(&a.dir, opts)?;
             let source = log.header.source.clone().unwrap_or_default();
@@ -842,11 +841,8 @@ fn cooperative_command(a: &CooperativeArgs) -> Result<()> {
                 let (log, truth) = mrclam::import(
                     &dir,
                     ImportOptions {
-                        robot,
-                        track_gap_s: 5.0,
-                        rate_hz: 10.0,
-                        snr_db: 20.0,
                         odometry_delay: a.odometry_delay,
+                        ..ImportOptions::robot(robot)
                     },
                 )?;
                 if let Some(source) = &log.header.source {
