@@ -152,25 +152,34 @@ fn the_readme_example_scenario_simulates() {
     );
 }
 
-#[test]
-fn run_writes_map_track_and_plots() {
-    let dir = tempfile::tempdir().unwrap();
-    let sim_dir = dir.path().join("sim");
+/// `simulate --scenario indoor --track TRACK --seed SEED --out DIR`, which must succeed.
+fn simulate_indoor(track: &str, seed: u64, dir: &Path) {
     let st = agent()
         .args([
             "simulate",
             "--scenario",
             "indoor",
             "--track",
-            "user01",
+            track,
             "--seed",
-            "2",
-            "--out",
         ])
-        .arg(&sim_dir)
+        .arg(seed.to_string())
+        .arg("--out")
+        .arg(dir)
         .output()
         .unwrap();
-    assert!(st.status.success());
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+}
+
+#[test]
+fn run_writes_map_track_and_plots() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim_dir = dir.path().join("sim");
+    simulate_indoor("user01", 2, &sim_dir);
     let out = dir.path().join("run");
     let st = agent()
         .args([
@@ -227,19 +236,7 @@ fn run_writes_map_track_and_plots() {
 fn the_configuration_comes_from_the_sensor_profile_a_file_and_flags_and_says_so() {
     let dir = tempfile::tempdir().unwrap();
     let sim = dir.path().join("sim");
-    let st = agent()
-        .args([
-            "simulate",
-            "--scenario",
-            "indoor",
-            "--track",
-            "user01",
-            "--out",
-        ])
-        .arg(&sim)
-        .output()
-        .unwrap();
-    assert!(st.status.success());
+    simulate_indoor("user01", 1, &sim);
     let file = dir.path().join("mine.toml");
     std::fs::write(
         &file,
