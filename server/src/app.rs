@@ -22,6 +22,7 @@ pub struct Application {
 
 impl Application {
     pub async fn build(config: Config) -> anyhow::Result<Self> {
+        config.validate().map_err(anyhow::Error::msg)?;
         let tokens = match &config.token_file {
             Some(path) => TokenStore::load(path)?,
             None => TokenStore::default(),

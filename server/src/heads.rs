@@ -17,7 +17,7 @@ pub const CHANNEL: &str = "echomap_heads";
 
 /// How a replica on PostgreSQL knows that its cached current version of a map is still the
 /// current one.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ReplicaCache {
     /// read the stored head on every request (one indexed read): a version another replica
     /// committed is served at once
@@ -25,6 +25,32 @@ pub enum ReplicaCache {
     /// trust the cache until a notification says the head moved: no read per request, but a
     /// version another replica committed is served only once its notification has arrived
     Listen,
+}
+
+impl ReplicaCache {
+    /// Every mode, by its name.
+    pub const ALL: [(&'static str, ReplicaCache); 2] = [
+        ("check", ReplicaCache::Check),
+        ("listen", ReplicaCache::Listen),
+    ];
+}
+
+impl std::str::FromStr for ReplicaCache {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Self::ALL
+            .iter()
+            .find(|(name, _)| *name == s)
+            .map(|(_, v)| *v)
+            .ok_or_else(|| format!("unknown replica cache {s:?} (check or listen)"))
+    }
+}
+
+impl std::fmt::Display for ReplicaCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let name = Self::ALL.iter().find(|(_, v)| v == self).map(|(n, _)| *n);
+        f.write_str(name.unwrap_or("?"))
+    }
 }
 
 #[derive(Debug, Default)]

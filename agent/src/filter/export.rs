@@ -12,7 +12,8 @@
 //! Particles that share a transmitter through resampling are counted once with their summed
 //! weight, so the cost is driven by distinct transmitter states, not by the particle count.
 
-use super::rbpf::{Filter, TxState};
+use super::particle::TxState;
+use super::rbpf::Filter;
 use echomap_shared::map::{MapError, Transmitter, TransmitterMap};
 use echomap_shared::mixture::{self, Component, merge_pair, symmetrize};
 use nalgebra::Matrix3;

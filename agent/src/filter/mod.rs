@@ -6,13 +6,17 @@
 //! (Ulmschneider et al. 2021 eq. 19, modules `prior` and `prior_map`), visibility is mapped on
 //! a hex grid (Ulmschneider et al. 2021 eq. 11–12), and at the end the particle ensemble is exported as an `echomap.map.v1` user map.
 
+pub mod association;
 pub mod config;
 pub mod export;
+mod fusion;
 pub mod model;
+pub mod particle;
 pub mod prior;
 pub mod prior_map;
 pub mod rbpf;
 pub mod srckf;
+pub mod update;
 pub mod visibility;
 pub mod vonmises;
 

@@ -336,7 +336,7 @@ fn a_particles_transform_draw_moves_the_prior_rigidly() {
     // arrival as seeing D(prior) from the pose, and D must keep the clock offset and the
     // covariance's eigenvalues.
     use super::model::{Comp, Pose, h_toa_aoa};
-    use super::rbpf::FrameDelta;
+    use super::particle::FrameDelta;
     use super::srckf::SqrtGaussian;
     use nalgebra::{Matrix3, Point2, Vector2, Vector3};
     let d = FrameDelta {
@@ -782,8 +782,8 @@ fn the_product_of_two_gaussians_is_the_information_sum_and_its_evidence_their_ov
     // N(x; a, A)·N(x; b, B) = N(a; b, A + B)·N(x; m, P) with P = (A⁻¹ + B⁻¹)⁻¹,
     // m = P(A⁻¹a + B⁻¹b); two components on one side split the product by their overlap.
     use super::model::Comp;
-    use super::rbpf::product_mixture;
     use super::srckf::SqrtGaussian;
+    use super::update::product_mixture;
     use nalgebra::{Matrix3, Vector3};
     let comp = |w: f64, m: [f64; 3], var: [f64; 3]| Comp {
         weight: w,

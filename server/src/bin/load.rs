@@ -12,7 +12,7 @@
 //! replicas, connection and uploader `i` use replica `i mod N`.
 
 use anyhow::{Context, Result, bail};
-use clap::{Parser, Subcommand, ValueEnum};
+use clap::{Parser, Subcommand};
 use echomap_server::heads::ReplicaCache;
 use echomap_server::synth;
 use std::path::PathBuf;
@@ -64,7 +64,7 @@ struct Cli {
     replicas: usize,
     /// the servers' `--replica-cache` (PostgreSQL): `check` reads the head per GET, `listen`
     /// trusts the cache until a notification says the head moved
-    #[arg(long, value_enum, default_value_t = ReplicaCache::Check)]
+    #[arg(long, default_value_t = ReplicaCache::Check)]
     replica_cache: ReplicaCache,
     /// seed of the synthetic maps
     #[arg(long, default_value_t = 1)]
@@ -242,12 +242,7 @@ async fn bench(cli: &Cli) -> Result<()> {
                     .arg("--token-file")
                     .arg(&token_file)
                     .arg("--replica-cache")
-                    .arg(
-                        cli.replica_cache
-                            .to_possible_value()
-                            .expect("no skipped variants")
-                            .get_name(),
-                    )
+                    .arg(cli.replica_cache.to_string())
                     .env("RUST_LOG", "warn")
                     .env("ECHOMAP_RATE_LIMIT", "1000000")
                     .env("ECHOMAP_RATE_BURST", "1000000"),

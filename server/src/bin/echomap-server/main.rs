@@ -1,6 +1,8 @@
 use anyhow::Result;
+mod cli;
+
 use clap::Parser;
-use echomap_server::config::Command;
+use cli::{Cli, Command};
 use echomap_server::storage::{Storage, redact, sqlite_file};
 use echomap_server::{Application, Config, init_tracing, shutdown_signal};
 use std::io::Write;
@@ -11,9 +13,10 @@ static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 #[tokio::main]
 async fn main() -> Result<()> {
-    let config = Config::parse();
+    let cli = Cli::parse();
+    let config = cli.config();
     init_tracing(config.log_format);
-    if let Some(Command::CopyTo { target, page_rows }) = &config.command {
+    if let Some(Command::CopyTo { target, page_rows }) = &cli.command {
         return copy_to(&config, target, *page_rows).await;
     }
     let app = Application::build(config).await?;

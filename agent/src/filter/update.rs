@@ -1,0 +1,303 @@
+//! The measurement update of one transmitter's Gaussian mixture: every component by the
+//! square-root cubature Kalman filter (Gentner et al. 2016 eq. 45–46), the optional outlier
+//! term, pruning and merging of components (§4.3), and the product of two mixtures that fuses a
+//! prior-map transmitter into an own one.
+
+use super::config::FilterConfig;
+use super::model::{Comp, Pose, h_toa, h_toa_aoa, residual_toa, residual_toa_aoa};
+use super::srckf::{self, SqrtGaussian};
+use echomap_shared::log::Measurement;
+use echomap_shared::mixture::{self, Component};
+use nalgebra::{Matrix1, Matrix2, Matrix3, Vector1, Vector2, Vector3};
+
+/// Per-measurement noise factor and the measurement as a vector.
+pub(super) enum Meas {
+    ToaAoa {
+        z: Vector2<f64>,
+        r_sqrt: Matrix2<f64>,
+    },
+    Toa {
+        z: Vector1<f64>,
+        r_sqrt: Matrix1<f64>,
+    },
+}
+
+impl Meas {
+    pub(super) fn new(m: &Measurement, cfg: &FilterConfig, aoa: bool) -> Self {
+        let (sd, sa) = cfg.noise.std(m.snr_db);
+        match (aoa, m.aoa) {
+            (true, Some(a)) => Meas::ToaAoa {
+                z: Vector2::new(m.d, a),
+                r_sqrt: Matrix2::new(sd, 0.0, 0.0, sa),
+            },
+            _ => Meas::Toa {
+                z: Vector1::new(m.d),
+                r_sqrt: Matrix1::new(sd),
+            },
+        }
+    }
+
+    pub(super) fn sigmas(&self) -> (f64, f64) {
+        match self {
+            Meas::ToaAoa { r_sqrt, .. } => (r_sqrt[(0, 0)], r_sqrt[(1, 1)]),
+            Meas::Toa { r_sqrt, .. } => (r_sqrt[(0, 0)], std::f64::consts::PI),
+        }
+    }
+
+    /// Updates one component; returns the posterior and ln N(z; ẑ, P_zz).
+    pub(super) fn update(&self, pose: &Pose, g: &SqrtGaussian) -> Option<srckf::Updated> {
+        match self {
+            Meas::ToaAoa { z, r_sqrt } => {
+                srckf::update(g, z, r_sqrt, |x| h_toa_aoa(pose, x), residual_toa_aoa)
+            }
+            Meas::Toa { z, r_sqrt } => {
+                srckf::update(g, z, r_sqrt, |x| h_toa(pose, x), residual_toa)
+            }
+        }
+    }
+
+    /// `(ln N(z; ẑ, P_zz), squared Mahalanobis distance of the innovation)` without updating
+    /// (for association likelihoods and gating).
+    pub(super) fn log_likelihood(&self, pose: &Pose, g: &SqrtGaussian) -> Option<(f64, f64)> {
+        match self {
+            Meas::ToaAoa { z, r_sqrt } => {
+                let p = srckf::predict(
+                    g,
+                    |x| h_toa_aoa(pose, x),
+                    residual_toa_aoa,
+                    &(r_sqrt * r_sqrt.transpose()),
+                );
+                srckf::log_normal_and_mahalanobis(&residual_toa_aoa(z, &p.z_hat), &p.pzz)
+            }
+            Meas::Toa { z, r_sqrt } => {
+                let p = srckf::predict(
+                    g,
+                    |x| h_toa(pose, x),
+                    residual_toa,
+                    &(r_sqrt * r_sqrt.transpose()),
+                );
+                srckf::log_normal_and_mahalanobis(&residual_toa(z, &p.z_hat), &p.pzz)
+            }
+        }
+    }
+
+    pub(super) fn d(&self) -> f64 {
+        match self {
+            Meas::ToaAoa { z, .. } => z.x,
+            Meas::Toa { z, .. } => z.x,
+        }
+    }
+
+    pub(super) fn aoa(&self) -> Option<f64> {
+        match self {
+            Meas::ToaAoa { z, .. } => Some(z.y),
+            Meas::Toa { .. } => None,
+        }
+    }
+}
+
+pub(super) fn log_sum_exp(v: impl Iterator<Item = f64> + Clone) -> f64 {
+    let max = v.clone().fold(f64::NEG_INFINITY, f64::max);
+    if max == f64::NEG_INFINITY {
+        return max;
+    }
+    max + v.map(|x| (x - max).exp()).sum::<f64>().ln()
+}
+
+/// Updates a bound transmitter's mixture with one measurement and returns the log likelihood
+/// of the measurement: ln Σ_c w_c N(z; ẑ_c, P_zz,c) (eq. 45–46), or with an outlier
+/// probability ε > 0 the robust `ln((1 − ε)·L + ε·λ)`, where the mixture keeps its prior state
+/// when the outlier term is the larger (a gross error then neither moves the transmitter nor
+/// leaves only the particles that happen to fit it).
+pub(super) fn update_mixture(
+    comps: &mut Vec<Comp>,
+    meas: &Meas,
+    pose: &Pose,
+    cfg: &FilterConfig,
+    merge_now: bool,
+) -> f64 {
+    let eps = cfg.outlier_probability;
+    if eps <= 0.0 {
+        return update_mixture_gaussian(comps, meas, pose, cfg, merge_now);
+    }
+    let prior = comps.clone();
+    let ln_in = (1.0 - eps).ln() + update_mixture_gaussian(comps, meas, pose, cfg, merge_now);
+    let ln_out = (eps * cfg.outlier_density).ln();
+    if ln_out > ln_in {
+        *comps = prior;
+    }
+    log_sum_exp([ln_in, ln_out].into_iter())
+}
+
+/// Updates every component of a mixture with one measurement (eq. 46) and returns the
+/// log marginal likelihood ln Σ_c w_c N(z; ẑ_c, P_zz,c) (the factor of eq. 45).
+pub(super) fn update_mixture_gaussian(
+    comps: &mut Vec<Comp>,
+    meas: &Meas,
+    pose: &Pose,
+    cfg: &FilterConfig,
+    merge_now: bool,
+) -> f64 {
+    // In place: each component's posterior replaces its prior; its log-likelihood goes to
+    // `lls` (on the stack for up to 32 components; NaN marks a numerically degenerate
+    // update, dropped below).
+    let mut max_ll = f64::NEG_INFINITY;
+    let mut lls = [0.0f64; 32];
+    let small = comps.len() <= lls.len();
+    let mut big: Vec<f64> = Vec::new();
+    for (k, c) in comps.iter_mut().enumerate() {
+        let ll = match meas.update(pose, &c.g) {
+            Some(u) => {
+                c.g = u.posterior;
+                u.log_likelihood
+            }
+            None => f64::NAN,
+        };
+        if ll > max_ll {
+            max_ll = ll;
+        }
+        if small {
+            lls[k] = ll;
+        } else {
+            big.push(ll);
+        }
+    }
+    if !max_ll.is_finite() {
+        // Numerically degenerate (every update failed): the particle gets no support.
+        return -1e3;
+    }
+    let lls = if small { &lls[..comps.len()] } else { &big[..] };
+    // w_c ∝ w_c·N(z; ẑ_c, P_zz,c) (eq. 46) with one exp per component and one ln per
+    // mixture: Σ_c w_c·exp(ll_c − max) is the marginal likelihood scaled by exp(−max)
+    let mut sum = 0.0;
+    for (c, ll) in comps.iter_mut().zip(lls) {
+        c.weight = if ll.is_nan() {
+            0.0
+        } else {
+            c.weight * (ll - max_ll).exp()
+        };
+        sum += c.weight;
+    }
+    // the best component has weight w·exp(0) > 0, so something is kept and sum > 0
+    comps.retain(|c| c.weight > 0.0);
+    for c in comps.iter_mut() {
+        c.weight /= sum;
+    }
+    tidy(comps, cfg, merge_now);
+    max_ll + sum.ln()
+}
+
+/// Pruning (ρ), merging of close components and the per-transmitter cap (Gentner et al. 2016 §4.3).
+pub(super) fn tidy(comps: &mut Vec<Comp>, cfg: &FilterConfig, merge_now: bool) {
+    if comps.len() > 1 {
+        let max_w = comps.iter().map(|c| c.weight).fold(0.0, f64::max);
+        comps.retain(|c| c.weight >= cfg.prune_weight || c.weight == max_w);
+        let total: f64 = comps.iter().map(|c| c.weight).sum();
+        for c in comps.iter_mut() {
+            c.weight /= total;
+        }
+    }
+    let cap = if merge_now {
+        1.max(close_cluster_count(comps))
+    } else {
+        usize::MAX
+    };
+    let cap = cap.min(cfg.max_components);
+    if comps.len() > cap {
+        let as_components: Vec<Component> = comps
+            .iter()
+            .map(|c| Component::new(c.weight, c.g.mean, c.g.cov()))
+            .collect();
+        let reduced = mixture::reduce(&as_components, cap);
+        *comps = reduced
+            .into_iter()
+            .filter_map(|c| {
+                SqrtGaussian::from_cov(c.mean, &c.cov).map(|g| Comp {
+                    weight: c.weight,
+                    g,
+                })
+            })
+            .collect();
+    }
+}
+
+/// Number of groups of components whose means lie within Mahalanobis distance 1 of each
+/// other — merging down to this count removes duplicates that converged together.
+pub(super) fn close_cluster_count(comps: &[Comp]) -> usize {
+    if comps.len() < 2 {
+        return comps.len();
+    }
+    let mut leaders: Vec<usize> = Vec::new();
+    for (i, c) in comps.iter().enumerate() {
+        let close = leaders.iter().any(|&l| {
+            let p = c.g.cov() + comps[l].g.cov();
+            let d = c.g.mean - comps[l].g.mean;
+            p.cholesky()
+                .map(|ch| d.dot(&ch.solve(&d)) < 1.0)
+                .unwrap_or(false)
+        });
+        if !close {
+            leaders.push(i);
+        }
+    }
+    leaders.len()
+}
+
+/// The normalised product of two Gaussian mixtures over the same state, its log evidence
+/// `ln Σ_ij w_i·w_j·N(m_j; m_i, P_i + P_j)`, and the floor of that evidence: the largest
+/// `ln w_i·w_j − ½·ln|2π(P_i + P_j)|` less `gate_chi2 / 2`. None when no pair of components
+/// gives a usable product.
+pub(super) fn product_mixture(
+    a: &[Comp],
+    b: &[Comp],
+    gate_chi2: f64,
+) -> Option<(Vec<Comp>, f64, f64)> {
+    let ln_2pi = (2.0 * std::f64::consts::PI).ln();
+    let mut out: Vec<(f64, Vector3<f64>, Matrix3<f64>)> = Vec::new();
+    let mut floor = f64::NEG_INFINITY;
+    for ca in a {
+        let pa = ca.g.cov();
+        for cb in b {
+            let s = pa + cb.g.cov();
+            let Some(ch) = s.cholesky() else {
+                continue;
+            };
+            let d = cb.g.mean - ca.g.mean;
+            let ln_det = 2.0 * ch.l().diagonal().iter().map(|x| x.ln()).sum::<f64>();
+            let ln_norm = ca.weight.ln() + cb.weight.ln() - 0.5 * (3.0 * ln_2pi + ln_det);
+            floor = floor.max(ln_norm - 0.5 * gate_chi2);
+            // K = P_a S⁻¹: mean m_a + K d, covariance P_a − K P_a
+            let k = ch.solve(&pa).transpose();
+            let mean = ca.g.mean + k * d;
+            let cov = pa - k * pa;
+            let cov = (cov + cov.transpose()) * 0.5;
+            out.push((ln_norm - 0.5 * d.dot(&ch.solve(&d)), mean, cov));
+        }
+    }
+    let total = log_sum_exp(out.iter().map(|o| o.0));
+    if !total.is_finite() {
+        return None;
+    }
+    let comps: Vec<Comp> = out
+        .into_iter()
+        .filter_map(|(l, mean, cov)| {
+            SqrtGaussian::from_cov(mean, &cov).map(|g| Comp {
+                weight: (l - total).exp(),
+                g,
+            })
+        })
+        .filter(|c| c.weight > 0.0)
+        .collect();
+    let sum: f64 = comps.iter().map(|c| c.weight).sum();
+    if comps.is_empty() || sum <= 0.0 {
+        return None;
+    }
+    let comps = comps
+        .into_iter()
+        .map(|c| Comp {
+            weight: c.weight / sum,
+            g: c.g,
+        })
+        .collect();
+    Some((comps, total, floor))
+}
