@@ -4,6 +4,7 @@
 //! plotting, and the run configuration (`config`). The command line lives in the binary.
 
 pub mod client;
+pub mod coincidence;
 pub mod config;
 pub mod crowd;
 #[cfg(feature = "lab")]

@@ -463,6 +463,17 @@ pub type Curve = (String, RGBColor, Vec<(f64, f64)>);
 
 /// A line chart of several labelled curves over travelled distance.
 pub fn draw_curves(title: &str, y_desc: &str, curves: &[Curve], out: &Path) -> Result<()> {
+    draw_xy(title, "travelled distance (m)", y_desc, curves, out)
+}
+
+/// A line chart of several labelled curves, x from 0.
+pub fn draw_xy(
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    curves: &[Curve],
+    out: &Path,
+) -> Result<()> {
     let x_max = curves
         .iter()
         .flat_map(|c| c.2.iter().map(|p| p.0))
@@ -486,7 +497,7 @@ pub fn draw_curves(title: &str, y_desc: &str, curves: &[Curve], out: &Path) -> R
                 .map_err(|e| anyhow!("{e}"))?;
             chart
                 .configure_mesh()
-                .x_desc("travelled distance (m)")
+                .x_desc(x_desc)
                 .y_desc(y_desc)
                 .draw()
                 .map_err(|e| anyhow!("{e}"))?;

@@ -56,6 +56,8 @@ pub mod defaults {
     pub const RATE_LIMIT_PER_S: u32 = 20;
     /// burst of writes per token
     pub const RATE_LIMIT_BURST: u32 = 100;
+    /// rejected contributions a contributor may have in any 24 hours
+    pub const REJECTED_QUOTA_PER_DAY: u32 = 50;
     /// connections in the read pool
     pub const READ_CONNECTIONS: u32 = 4;
     /// weight of the visibility term in the matching score
@@ -83,6 +85,8 @@ pub struct Config {
     pub rate_limit_per_s: u32,
     /// burst of writes a token may make at once
     pub rate_limit_burst: u32,
+    /// rejected contributions a contributor may have in any 24 hours (then 429)
+    pub rejected_quota_per_day: u32,
     /// connections in the read pool
     pub read_connections: u32,
     /// log line format
@@ -110,6 +114,7 @@ impl Default for Config {
             body_limit: defaults::BODY_LIMIT,
             rate_limit_per_s: defaults::RATE_LIMIT_PER_S,
             rate_limit_burst: defaults::RATE_LIMIT_BURST,
+            rejected_quota_per_day: defaults::REJECTED_QUOTA_PER_DAY,
             read_connections: defaults::READ_CONNECTIONS,
             log_format: LogFormat::Text,
             match_visibility_weight: defaults::MATCH_VISIBILITY_WEIGHT,
@@ -149,6 +154,7 @@ impl Config {
             ("read_connections", self.read_connections as u64),
             ("rate_limit_per_s", self.rate_limit_per_s as u64),
             ("rate_limit_burst", self.rate_limit_burst as u64),
+            ("rejected_quota_per_day", self.rejected_quota_per_day as u64),
             ("body_limit", self.body_limit as u64),
         ];
         for (name, v) in positive {

@@ -55,6 +55,8 @@ pub enum ApiError {
     UnsupportedMediaType(String),
     #[error("rate limit exceeded; retry after {retry_after_s} s")]
     RateLimited { retry_after_s: u64 },
+    #[error("{detail}")]
+    QuotaExceeded { detail: String, retry_after_s: u64 },
     #[error("service unavailable: {0}")]
     Unavailable(String),
     #[error(transparent)]
@@ -79,7 +81,7 @@ impl ApiError {
             Invalid { .. } | IdempotencyMismatch | Unmatched { .. } => {
                 StatusCode::UNPROCESSABLE_ENTITY
             }
-            RateLimited { .. } => StatusCode::TOO_MANY_REQUESTS,
+            RateLimited { .. } | QuotaExceeded { .. } => StatusCode::TOO_MANY_REQUESTS,
             Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
             Database(_) | Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
@@ -101,6 +103,7 @@ impl ApiError {
             IdempotencyMismatch => "idempotency-key-reused",
             Unmatched { .. } => "unmatched",
             RateLimited { .. } => "rate-limited",
+            QuotaExceeded { .. } => "quota-exceeded",
             Unavailable(_) => "unavailable",
             Database(_) | Internal(_) => "internal",
         }
@@ -152,7 +155,8 @@ impl IntoResponse for ApiError {
                     HeaderValue::from_static("Bearer realm=\"echomap\""),
                 );
             }
-            ApiError::RateLimited { retry_after_s } => {
+            ApiError::RateLimited { retry_after_s }
+            | ApiError::QuotaExceeded { retry_after_s, .. } => {
                 resp.headers_mut()
                     .insert(header::RETRY_AFTER, HeaderValue::from(*retry_after_s));
             }

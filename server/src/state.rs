@@ -116,6 +116,31 @@ impl AppState {
         }
     }
 
+    /// The per-contributor quota of rejected contributions: at most
+    /// `rejected_quota_per_day` stored rejections in any 24 hours, counted in the database (so
+    /// shared by every replica). Over it → 429 until the oldest rejection in the window ages out.
+    pub async fn check_quota(&self, who: &crate::auth::Principal) -> Result<(), ApiError> {
+        const DAY_MS: i64 = 24 * 3600 * 1000;
+        let quota = i64::from(self.config.rejected_quota_per_day);
+        let now = crate::storage::now_ms();
+        let (count, oldest) = self
+            .storage
+            .rejected_since(&who.contributor, now - DAY_MS)
+            .await?;
+        if count < quota {
+            return Ok(());
+        }
+        let wait_ms = oldest.map_or(DAY_MS, |t| (t + DAY_MS - now).max(0));
+        Err(ApiError::QuotaExceeded {
+            detail: format!(
+                "contributor {:?} has {count} rejected contributions in the last 24 h, the quota is {quota}: \
+                 uploads that match no map are refused until the oldest ages out",
+                who.contributor
+            ),
+            retry_after_s: ((wait_ms as f64) / 1000.0).ceil().max(1.0) as u64,
+        })
+    }
+
     /// The lock serializing merges of one map in this process.
     pub fn map_lock(&self, map_id: i64) -> Arc<tokio::sync::Mutex<()>> {
         self.map_locks

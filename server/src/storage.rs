@@ -628,6 +628,25 @@ impl Storage {
         })
     }
 
+    /// How many of `contributor`'s contributions (to any map) were rejected since `since_ms`, and
+    /// when the oldest of them was received.
+    pub async fn rejected_since(
+        &self,
+        contributor: &str,
+        since_ms: i64,
+    ) -> Result<(i64, Option<i64>), sqlx::Error> {
+        on_reader!(self, |pool| {
+            sqlx::query_as(
+                "SELECT COUNT(*), MIN(received_ms) FROM contributions
+                 WHERE contributor = $1 AND received_ms >= $2 AND status = 'rejected'",
+            )
+            .bind(contributor)
+            .bind(since_ms)
+            .fetch_one(pool)
+            .await
+        })
+    }
+
     /// Commits a batch of contributions (each accepted one with the version it produced, in
     /// order) in one write transaction — one fsync for the batch — provided the map is still
     /// at `expected_version`. Each entry's `respond(contribution id, new version)` renders the

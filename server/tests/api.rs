@@ -1245,3 +1245,115 @@ async fn merge_absorb_chi2_folds_an_uploads_second_copy_into_the_map() {
         s.stop().await;
     }
 }
+
+/// A dense field over the 60 m × 40 m area of `world`: two thirds of the transmitters with
+/// b = 0, the rest with a clock offset of up to 30 m — the kind of map that coincides most
+/// easily with another.
+fn dense_field(seed: u64, n: usize) -> Vec<[f64; 3]> {
+    use rand::{RngExt, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    (0..n)
+        .map(|_| {
+            let b = if rng.random_bool(2.0 / 3.0) {
+                0.0
+            } else {
+                rng.random_range(0.0..30.0)
+            };
+            [
+                rng.random_range(-30.0..30.0),
+                rng.random_range(-20.0..20.0),
+                b,
+            ]
+        })
+        .collect()
+}
+
+#[tokio::test]
+async fn a_contributor_uploading_unrelated_maps_cannot_poison_the_map_or_fill_the_table() {
+    let s = TestServer::start().await;
+    let c = client();
+    create_map(&c, &s, "city").await;
+    let truth = world(1, 25);
+    for (k, seed) in (21u64..26).enumerate() {
+        let b = contribution(user_map(&truth, seed, 0.85, 0.1), &format!("run-{k}"));
+        let r = post_contribution(&c, &s, "city", ALICE, &format!("good-{k}"), &b).await;
+        assert_eq!(r.status(), 201, "{}", r.text().await.unwrap());
+    }
+    let get_map = || async {
+        c.get(s.url("/v1/maps/city"))
+            .send()
+            .await
+            .unwrap()
+            .json::<Value>()
+            .await
+            .unwrap()
+    };
+    let before = get_map().await;
+    assert_eq!(before["version"], 5);
+    let quota = echomap_server::config::defaults::REJECTED_QUOTA_PER_DAY as usize;
+    let (mut unmatched, mut over_quota) = (0, 0);
+    for i in 0..100u64 {
+        // dense unrelated fields of 8–40 transmitters, 0.3 m noise, each a fresh run
+        let n = 8 + (i as usize * 7) % 33;
+        let poison = contribution(
+            user_map(&dense_field(5000 + i, n), 7000 + i, 1.0, 0.3),
+            &format!("poison-run-{i}"),
+        );
+        let r = post_contribution(&c, &s, "city", BOB, &format!("poison-{i}"), &poison).await;
+        let status = r.status().as_u16();
+        assert!(is_problem(&r), "upload {i}: not problem+json");
+        let retry_after = r.headers().get("retry-after").cloned();
+        let p: Value = r.json().await.unwrap();
+        let detail = p["detail"].as_str().unwrap_or_default().to_owned();
+        match status {
+            422 => {
+                unmatched += 1;
+                assert!(p["type"].as_str().unwrap().ends_with("/unmatched"), "{p}");
+                assert!(p["contribution"].as_i64().is_some(), "{p}");
+                assert!(
+                    detail.contains("inliers") || detail.contains("triple"),
+                    "upload {i}: the refusal does not say why: {detail}"
+                );
+            }
+            429 => {
+                over_quota += 1;
+                assert!(
+                    p["type"].as_str().unwrap().ends_with("/quota-exceeded"),
+                    "{p}"
+                );
+                assert!(detail.contains("quota"), "{detail}");
+                assert!(retry_after.is_some(), "upload {i}: 429 without Retry-After");
+            }
+            other => panic!("upload {i}: unrelated map answered {other}: {p}"),
+        }
+    }
+    assert_eq!(
+        unmatched, quota,
+        "every upload up to the quota is matched and refused"
+    );
+    assert_eq!(over_quota, 100 - quota);
+    let after = get_map().await;
+    assert_eq!(
+        after["version"], before["version"],
+        "a poisoned upload made a version"
+    );
+    assert_eq!(after["transmitters"], before["transmitters"]);
+    // the table holds the good contributions and no more than the quota of refusals
+    let page: Value = c
+        .get(s.url("/v1/maps/city/contributions?limit=200"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let rows = page["contributions"].as_array().unwrap();
+    let rejected = rows.iter().filter(|x| x["status"] == "rejected").count();
+    assert_eq!(rows.len(), 5 + quota);
+    assert_eq!(rejected, quota);
+    // another contributor is not held back by the quota
+    let b = contribution(user_map(&truth, 31, 0.85, 0.1), "alice-late");
+    let r = post_contribution(&c, &s, "city", ALICE, "good-late", &b).await;
+    assert_eq!(r.status(), 201, "{}", r.text().await.unwrap());
+    s.stop().await;
+}

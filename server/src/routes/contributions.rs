@@ -64,7 +64,7 @@ fn replay_stored(s: StoredResponse) -> Response {
         (status = 409, body = Problem, description = "same key still in progress"),
         (status = 413, body = Problem), (status = 415, body = Problem),
         (status = 422, body = Problem, description = "invalid map (field named), key reused with another body, or unmatched (stored as rejected)"),
-        (status = 429, body = Problem)))]
+        (status = 429, body = Problem, description = "write rate limit, or the contributor's quota of rejected contributions, exceeded (Retry-After)")))]
 pub async fn post_contribution(
     State(app): State<SharedState>,
     Path(name): Path<String>,
@@ -91,6 +91,7 @@ pub async fn post_contribution(
         return lookup(s);
     }
     app.check_rate(&who).await?;
+    app.check_quota(&who).await?;
     let _in_flight = app.begin(row.id, &who.contributor, key.as_str())?;
     // the first request with this key may have completed between the lookup and `begin`
     if let Some(s) = app

@@ -29,6 +29,7 @@ use nalgebra::{Isometry2, Matrix2, Matrix3, Point2, Vector2, Vector3};
 use rand::{Rng, RngExt};
 
 mod config;
+pub mod fields;
 mod index;
 mod ransac;
 mod registration;

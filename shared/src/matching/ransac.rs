@@ -117,7 +117,6 @@ pub fn match_maps(
     let mut best: Option<(f64, f64, Hypothesis)> = None;
     let mut best_count = 0usize;
     let mut third = Vec::new();
-    let mut tests = 0usize;
     let mut needed = cfg.max_iterations;
     let mut it = 0;
     while it < needed.min(cfg.max_iterations) {
@@ -169,7 +168,6 @@ pub fn match_maps(
                         continue;
                     }
                     tried += 1;
-                    tests += 1;
                     let Some(iso) = fit_rigid(&[ua.p, ub.p, uc.p], &[p[pa].p, p[pb].p, pc.p])
                     else {
                         continue;
@@ -212,7 +210,7 @@ pub fn match_maps(
     let Some((score, vis, h)) = best else {
         return MatchResult::rejected("no consistent transmitter triple found".into(), it);
     };
-    let nfa = false_alarms(&h, &u, &p, cfg, tests.max(1));
+    let nfa = false_alarms(&h, &u, &p, cfg);
     let mirror = mirror_excess_chi2(&h, &u, &p);
     let mut result = MatchResult {
         accepted: h.pairs.len() >= cfg.min_inliers

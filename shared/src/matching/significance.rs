@@ -50,27 +50,31 @@ pub(super) fn mirror_excess_chi2(h: &Hypothesis, u: &[Cand], p: &[Cand]) -> f64 
 }
 
 /// Expected number of false alarms of a hypothesis (a-contrario test in the manner of ORSA,
-/// Moisan & Stival 2004): how many of the `tests` hypotheses tried would, in maps without a
-/// common part, fit at least as well by chance.
+/// Moisan & Stival 2004): how many hypotheses, among all that RANSAC could have formed from
+/// these two maps, would fit at least as well by chance if the maps had no common part.
 ///
 /// Null model: the prior candidates are spread uniformly over their bounding box (density ρ)
-/// and independent of the user's. A user transmitter meets a chance partner at least as close
-/// as inlier i (inside the ellipse of area e_i through its residual) and b-compatible with it
-/// (fraction f_i of the prior candidates) with probability q_i = 1 − exp(−ρ·e_i·f_i). Sorting
-/// the inliers by q, the three best are taken as the minimal sample: two pairs fix a rigid
-/// transform and carry no evidence; the third was chosen among the prior transmitters whose
-/// distances to the first two agree within `distance_tolerance_m`, so it counts with
-/// q₃ = e₃ / (2·tol)². For j of the remaining inliers with q ≤ q_(3+j), the chance is the
-/// Binomial tail P(X ≥ j), X ~ Bin(n − 3, q_(3+j)), n the user candidates the hypothesis
-/// puts inside the prior's box. The false-alarm count is tests · (n − 3) · q₃ · min_j of
-/// that tail (the factor n − 3 pays for choosing j).
-pub(super) fn false_alarms(
-    h: &Hypothesis,
-    u: &[Cand],
-    p: &[Cand],
-    cfg: &MatchConfig,
-    tests: usize,
-) -> f64 {
+/// and independent of the user's. Under a transform, a user transmitter meets a chance partner
+/// at least as close as inlier i (inside the ellipse of area e_i through its residual, in the
+/// pair's covariance) and b-compatible with it (fraction f_i of the prior candidates) with
+/// probability q_i = 1 − exp(−ρ·e_i·f_i).
+///
+/// Every hypothesis is counted whether RANSAC tried it or not. A transform is fixed by a first
+/// pair (U·P choices for U user and P prior candidates: the translation, no evidence) and the
+/// user transmitter that fixes the rotation (U − 1 choices): its partner is chance when some
+/// prior transmitter lies on the circle its distance d to the first allows, in an annulus as
+/// wide as its ellipse — probability q′ = 1 − exp(−ρ·f·2π·d·2r), r = √(e/π). The first pair is
+/// the inlier of least q, the second the one of least q′. For j of the other inliers with
+/// q ≤ q_(j) (sorted), the chance is the Binomial tail P(X ≥ j), X ~ Bin(n − 2, q_(j)), where n
+/// counts every user candidate the transform puts inside the prior's box: a user transmitter
+/// there without a counterpart is a trial that failed — evidence against the hypothesis. The
+/// false-alarm count is `U·(U − 1)·P · (n − 2) · q′ · min_j P(X ≥ j)` (the factor n − 2 pays for
+/// choosing j).
+pub(super) fn false_alarms(h: &Hypothesis, u: &[Cand], p: &[Cand], cfg: &MatchConfig) -> f64 {
+    let k = h.pairs.len();
+    if k <= 2 {
+        return f64::INFINITY;
+    }
     let (x0, y0, x1, y1) = bounds(p);
     let margin = cfg.inlier_threshold_m;
     let (x0, x1, y0, y1) = (x0 - margin, x1 + margin, y0 - margin, y1 + margin);
@@ -80,35 +84,44 @@ pub(super) fn false_alarms(
         .map(|c| h.iso * c.p)
         .filter(|q| q.x >= x0 && q.x <= x1 && q.y >= y0 && q.y <= y1)
         .count();
-    let k = h.pairs.len();
-    if k <= 3 {
-        return f64::INFINITY;
-    }
-    let n = inside.max(k) - 3;
-    let mut q: Vec<(f64, f64)> = h
+    let n = inside.max(k) - 2;
+    // per inlier: ρ·f (chance partners per m²) and the ellipse area e
+    let rate_area: Vec<(f64, f64)> = h
         .pairs
         .iter()
         .zip(&h.ellipse_m2)
         .map(|(&(i, _), &e)| {
             let f =
                 p.iter().filter(|c| b_compatible(&u[i], c, cfg)).count() as f64 / p.len() as f64;
-            ((1.0 - (-density * e * f).exp()).clamp(1e-300, 1.0), e)
+            (density * f, e)
         })
         .collect();
-    q.sort_by(|a, b| a.0.total_cmp(&b.0));
-    // The third sample member was chosen among the prior transmitters whose distances to the
-    // first two agree within the tolerance — a region of at least (2·tol)² — so only its fine
-    // residual within that region is evidence.
-    let ln_third = (q[2].1 / (4.0 * cfg.distance_tolerance_m.powi(2)))
-        .clamp(1e-300, 1.0)
-        .ln();
-    let best_tail = (1..=k - 3)
-        .map(|j| ln_binomial_tail(n, j, q[2 + j].0))
+    let chance = |x: f64| (1.0 - (-x).exp()).clamp(1e-300, 1.0);
+    let first = (0..k)
+        .min_by(|&a, &b| {
+            (rate_area[a].0 * rate_area[a].1).total_cmp(&(rate_area[b].0 * rate_area[b].1))
+        })
+        .expect("k > 2 inliers");
+    let anchor = p[h.pairs[first].1].p;
+    let (second, q_rot) = (0..k)
+        .filter(|&i| i != first)
+        .map(|i| {
+            let (rate, e) = rate_area[i];
+            let d = (p[h.pairs[i].1].p - anchor).norm();
+            let r = (e / std::f64::consts::PI).sqrt();
+            (i, chance(rate * 2.0 * std::f64::consts::PI * d * 2.0 * r))
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .expect("k > 2 inliers");
+    let mut q: Vec<f64> = (0..k)
+        .filter(|&i| i != first && i != second)
+        .map(|i| chance(rate_area[i].0 * rate_area[i].1))
+        .collect();
+    q.sort_by(|a, b| a.total_cmp(b));
+    let (nu, np) = (u.len() as f64, p.len() as f64);
+    let ln_tests = nu.ln() + (nu - 1.0).ln() + np.ln() + (n as f64).ln();
+    let best_tail = (1..=k - 2)
+        .map(|j| ln_binomial_tail(n, j, q[j - 1]))
         .fold(0.0, f64::min);
-    if std::env::var_os("ECHOMAP_NFA_DEBUG").is_some() {
-        eprintln!(
-            "nfa: tests {tests} n {n} k {k} density {density:.4} q {q:?} best {best_tail:.2}"
-        );
-    }
-    tests as f64 * n as f64 * (ln_third + best_tail).exp()
+    (ln_tests + q_rot.ln() + best_tail).exp()
 }

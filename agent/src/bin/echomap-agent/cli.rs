@@ -358,7 +358,27 @@ pub struct CrowdArgs {
 pub enum ExperimentCommand {
     /// Ulmschneider et al. 2021 Fig. 5: the reference user's MAE with prior maps built by c
     /// contributors.
-    Cooperative(CooperativeArgs),
+    Cooperative(Box<CooperativeArgs>),
+    /// Calibration of map matching on dense random fields: unrelated pairs accepted and related
+    /// pairs recovered, by transmitters per map and acceptance threshold ε; writes
+    /// coincidence.csv, summary.md and false_accepts.svg into --out.
+    Coincidence(CoincidenceArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct CoincidenceArgs {
+    /// unrelated pairs per threshold (related pairs: a fifth as many)
+    #[arg(long, default_value_t = 5000)]
+    pub pairs: usize,
+    /// seed of the first pair
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// acceptance thresholds ε (expected false alarms) to evaluate
+    #[arg(long, value_delimiter = ',', default_value = "0.01,1,100")]
+    pub thresholds: Vec<f64>,
+    /// output folder
+    #[arg(long, default_value = "out/coincidence")]
+    pub out: PathBuf,
 }
 
 #[derive(Debug, Args)]
@@ -575,6 +595,19 @@ pub fn run(cli: Cli) -> Result<()> {
         }),
         Command::Crowd(a) => crowd_command(&a),
         Command::Experiment(ExperimentCommand::Cooperative(a)) => cooperative_command(&a),
+        Command::Experiment(ExperimentCommand::Coincidence(a)) => {
+            let md = echomap_agent::coincidence::coincidence(
+                &echomap_agent::coincidence::CoincidenceSpec {
+                    pairs: a.pairs,
+                    seed: a.seed,
+                    thresholds: a.thresholds,
+                    out: a.out.clone(),
+                },
+            )?;
+            print!("{md}");
+            println!("wrote {}", a.out.display());
+            Ok(())
+        }
         Command::Scenario(a) => {
             let scenario = load_scenario(&a.scenario, false)?;
             let ext = a

@@ -61,6 +61,12 @@ pub struct Cli {
     #[arg(long, env = "ECHOMAP_RATE_BURST", default_value_t = defaults::RATE_LIMIT_BURST, value_parser = clap::value_parser!(u32).range(1..))]
     pub rate_limit_burst: u32,
 
+    /// Rejected contributions (uploads that match no map) a contributor may have in any 24
+    /// hours, over all maps and replicas; above → 429 until the oldest ages out. Keeps one
+    /// misbehaving contributor from filling the contribution table.
+    #[arg(long, env = "ECHOMAP_REJECTED_QUOTA", default_value_t = defaults::REJECTED_QUOTA_PER_DAY, value_parser = clap::value_parser!(u32).range(1..))]
+    pub rejected_quota_per_day: u32,
+
     /// Connections in the read pool. SQLite: the write path always uses one more connection.
     /// PostgreSQL: one pool of this many plus 4 for commits.
     #[arg(long, env = "ECHOMAP_READ_CONNECTIONS", default_value_t = defaults::READ_CONNECTIONS, value_parser = clap::value_parser!(u32).range(1..))]
@@ -122,6 +128,7 @@ impl Cli {
             body_limit: self.body_limit,
             rate_limit_per_s: self.rate_limit_per_s,
             rate_limit_burst: self.rate_limit_burst,
+            rejected_quota_per_day: self.rejected_quota_per_day,
             read_connections: self.read_connections,
             log_format: self.log_format,
             match_visibility_weight: self.match_visibility_weight,
