@@ -61,16 +61,15 @@ pub fn coincidence(spec: &CoincidenceSpec) -> Result<String> {
                     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed.wrapping_add(k as u64));
                     let f = draw(&mut rng);
                     let r = match_maps(&f.user, &f.prior, &cfg, &mut rng);
+                    let (bin, recovered) = (bin_of(&f), f.recovered(&r));
                     let row = format!(
-                        "{kind},{k},{},{},{},{},{eps:e},{},{}\n",
-                        bin_of(&f),
+                        "{kind},{k},{bin},{},{},{},{eps:e},{},{recovered}\n",
                         f.user.len(),
                         f.prior.len(),
                         f.shared,
                         r.accepted,
-                        f.recovered(&r)
                     );
-                    (bin_of(&f), r.accepted, f.recovered(&r), row)
+                    (bin, r.accepted, recovered, row)
                 })
                 .collect::<Vec<_>>()
         };

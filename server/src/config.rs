@@ -29,19 +29,34 @@ impl LogFormat {
 impl FromStr for LogFormat {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        Self::ALL
-            .iter()
-            .find(|(name, _)| *name == s)
-            .map(|(_, v)| *v)
-            .ok_or_else(|| format!("unknown log format {s:?} (text or json)"))
+        by_name(&Self::ALL, s, "log format")
     }
 }
 
 impl fmt::Display for LogFormat {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let name = Self::ALL.iter().find(|(_, v)| v == self).map(|(n, _)| *n);
-        f.write_str(name.unwrap_or("?"))
+        f.write_str(name_of(&Self::ALL, self))
     }
+}
+
+/// The value named `s` in a table of (name, value); the error lists the names.
+pub(crate) fn by_name<T: Copy>(
+    all: &[(&'static str, T)],
+    s: &str,
+    what: &str,
+) -> Result<T, String> {
+    all.iter()
+        .find(|(name, _)| *name == s)
+        .map(|(_, v)| *v)
+        .ok_or_else(|| {
+            let names: Vec<&str> = all.iter().map(|(n, _)| *n).collect();
+            format!("unknown {what} {s:?} ({})", names.join(" or "))
+        })
+}
+
+/// The name of `v` in a table of (name, value).
+pub(crate) fn name_of<T: PartialEq>(all: &[(&'static str, T)], v: &T) -> &'static str {
+    all.iter().find(|(_, x)| x == v).map_or("?", |(n, _)| *n)
 }
 
 /// The defaults of every setting (the binary's flags show them).

@@ -38,18 +38,13 @@ impl ReplicaCache {
 impl std::str::FromStr for ReplicaCache {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        Self::ALL
-            .iter()
-            .find(|(name, _)| *name == s)
-            .map(|(_, v)| *v)
-            .ok_or_else(|| format!("unknown replica cache {s:?} (check or listen)"))
+        crate::config::by_name(&Self::ALL, s, "replica cache")
     }
 }
 
 impl std::fmt::Display for ReplicaCache {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let name = Self::ALL.iter().find(|(_, v)| v == self).map(|(n, _)| *n);
-        f.write_str(name.unwrap_or("?"))
+        f.write_str(crate::config::name_of(&Self::ALL, self))
     }
 }
 
