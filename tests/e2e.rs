@@ -193,3 +193,110 @@ async fn three_agents_share_a_map_through_a_real_server() {
 
 /// Triples of agents the end-to-end test runs (seeds K = 1…TRIPLES).
 const TRIPLES: u64 = 4;
+
+/// `echomap-agent upload DIR` with the server's answer: its console output and `upload.json`.
+async fn upload_again(base: &str, map: &str, token: &Path, dir: &Path) -> (bool, String, Value) {
+    let out = Command::new(agent_binary())
+        .arg("upload")
+        .arg(dir)
+        .args(["--server", base, "--map", map])
+        .arg("--token-file")
+        .arg(token)
+        .output()
+        .await
+        .unwrap();
+    let text =
+        String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr);
+    let saved = std::fs::read_to_string(dir.join("upload.json"))
+        .map(|t| serde_json::from_str(&t).unwrap())
+        .unwrap_or(Value::Null);
+    (out.status.success(), text, saved)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_upload_that_overlaps_too_little_is_kept_and_merges_once_the_map_has_grown() {
+    let dir = tempfile::tempdir().unwrap();
+    let tokens = common::token_file(dir.path(), &[]);
+    let agent_token = dir.path().join("agent-token");
+    std::fs::write(&agent_token, format!("{}\n", common::ALICE)).unwrap();
+    let (mut server, base) =
+        common::spawn_server_process(dir.path().join("grow.db"), &tokens).await;
+    let c = common::client();
+    let r = c
+        .put(format!("{base}/v1/maps/street"))
+        .bearer_auth(common::OPERATOR)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    // one street of 60 transmitters, sorted west to east, with a gap of 8 m after the western
+    // 20 (the first walk saw those)
+    let mut world = common::world(9, 60);
+    world.sort_by(|a, b| a[0].total_cmp(&b[0]));
+    for w in &mut world[20..] {
+        w[0] += 8.0;
+    }
+    let post = |body: Value, key: &'static str| {
+        let c = c.clone();
+        let url = format!("{base}/v1/maps/street/contributions");
+        async move {
+            let r = c
+                .post(url)
+                .bearer_auth(common::BOB)
+                .header("Idempotency-Key", key)
+                .json(&body)
+                .send()
+                .await
+                .unwrap();
+            (r.status().as_u16(), r.json::<Value>().await.unwrap())
+        }
+    };
+    let west = common::contribution(common::user_map(&world[..20], 1, 1.0, 0.1), "west");
+    assert_eq!(post(west, "west").await.0, 201);
+    // our short walk east of it saw six transmitters and shares the three at the seam
+    let ours = dir.path().join("ours");
+    std::fs::create_dir_all(&ours).unwrap();
+    let body = common::contribution(common::user_map(&world[17..23], 2, 1.0, 0.1), "ours");
+    std::fs::write(ours.join("contribution.json"), body.to_string()).unwrap();
+    let (ok, text, saved) = upload_again(&base, "street", &agent_token, &ours).await;
+    assert!(ok, "{text}");
+    assert_eq!(saved["status"], "undecided", "{text}");
+    let problem = &saved["response"];
+    assert!(
+        problem["type"].as_str().unwrap().ends_with("/undecided"),
+        "{problem}"
+    );
+    assert!(
+        problem["detail"].as_str().unwrap().contains("decide"),
+        "{problem}"
+    );
+    assert!(
+        text.contains("echomap-agent upload"),
+        "no hint to try again: {text}"
+    );
+    let head = get_json(&c, format!("{base}/v1/maps/street")).await;
+    assert_eq!(head["version"], 1, "an undecided upload changed the map");
+    // a second walk along the middle of the street overlaps the first one widely and merges
+    let middle = common::contribution(common::user_map(&world[8..45], 3, 1.0, 0.1), "middle");
+    assert_eq!(post(middle, "middle").await.0, 201);
+    // now the map covers much of our walk: the kept upload, sent again, merges
+    let (ok, text, saved) = upload_again(&base, "street", &agent_token, &ours).await;
+    assert!(ok, "{text}");
+    assert_eq!(saved["status"], "accepted", "{text}");
+    assert_eq!(saved["response"]["inliers"], 6, "{saved}");
+    let head = get_json(&c, format!("{base}/v1/maps/street")).await;
+    assert_eq!(head["version"], 3);
+    // a merged upload is not sent twice
+    let (ok, text, _) = upload_again(&base, "street", &agent_token, &ours).await;
+    assert!(!ok && text.contains("already merged"), "{text}");
+    let page = get_json(&c, format!("{base}/v1/maps/street/contributions")).await;
+    let statuses: Vec<&str> = page["contributions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["status"].as_str().unwrap())
+        .collect();
+    assert_eq!(statuses, ["accepted", "rejected", "accepted", "accepted"]);
+    server.start_kill().unwrap();
+    server.wait().await.unwrap();
+}

@@ -93,6 +93,9 @@ pub enum UploadOutcome {
     Accepted(Value),
     /// 422 `unmatched`: stored as rejected, the map is unchanged (the problem document)
     Rejected(Value),
+    /// 422 `undecided`: the upload shares too little with the map to decide; stored as
+    /// rejected, the map is unchanged — worth another try once the map has grown
+    Undecided(Value),
 }
 
 #[derive(Debug, Clone)]
@@ -265,8 +268,37 @@ impl MapClient {
 
     /// `POST /v1/maps/{map}/contributions` with an Idempotency-Key derived from the body.
     pub async fn upload(&self, map: &str, c: &Contribution) -> Result<UploadOutcome, ClientError> {
+        self.upload_attempt(map, c, None).await
+    }
+
+    /// Uploads `c` again after the server refused it as contribution `refused` (e.g. undecided,
+    /// when the map has grown since). The Idempotency-Key is derived from the body and the
+    /// refused contribution's id: a new key for a deliberate new attempt — the refusal merged
+    /// nothing, so nothing can merge twice — and the same key when this attempt is re-sent.
+    pub async fn upload_again(
+        &self,
+        map: &str,
+        c: &Contribution,
+        refused: i64,
+    ) -> Result<UploadOutcome, ClientError> {
+        self.upload_attempt(map, c, Some(refused)).await
+    }
+
+    async fn upload_attempt(
+        &self,
+        map: &str,
+        c: &Contribution,
+        refused: Option<i64>,
+    ) -> Result<UploadOutcome, ClientError> {
         let body = serde_json::to_vec(c).map_err(|e| ClientError::Protocol(e.to_string()))?;
-        let key = idempotency_key(&body);
+        let key = match refused {
+            None => idempotency_key(&body),
+            Some(id) => {
+                let mut tagged = body.clone();
+                tagged.extend_from_slice(format!("\nafter refused contribution {id}").as_bytes());
+                idempotency_key(&tagged)
+            }
+        };
         let seed = u64::from_le_bytes(Sha256::digest(&body)[..8].try_into().expect("8 bytes"));
         let url = self.url(&format!("/v1/maps/{map}/contributions"));
         let r = self
@@ -291,11 +323,16 @@ impl MapClient {
             problem: Some(p),
             ..
         } = &err
-            && p.get("type")
-                .and_then(Value::as_str)
-                .is_some_and(|t| t.ends_with("/unmatched"))
         {
-            return Ok(UploadOutcome::Rejected(p.clone()));
+            match p.get("type").and_then(Value::as_str) {
+                Some(t) if t.ends_with("/unmatched") => {
+                    return Ok(UploadOutcome::Rejected(p.clone()));
+                }
+                Some(t) if t.ends_with("/undecided") => {
+                    return Ok(UploadOutcome::Undecided(p.clone()));
+                }
+                _ => {}
+            }
         }
         Err(err)
     }

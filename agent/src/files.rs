@@ -76,6 +76,7 @@ pub fn match_json(
     let t = echomap_shared::Transform2::from_isometry(&r.map_from_agent);
     serde_json::json!({
         "accepted": r.accepted,
+        "decision": r.decision.as_str(),
         "map_from_agent": t,
         "correspondences": r.correspondences.iter().map(|&(u, p)| [user.transmitters()[u].id.clone(), prior.transmitters()[p].id.clone()]).collect::<Vec<_>>(),
         "residuals_m": r.residuals_m,

@@ -103,7 +103,8 @@ impl Remote {
         Ok(prior.map)
     }
 
-    /// Uploads the user map; prints the server's answer and saves it as `dir/upload.json`.
+    /// Uploads the user map; prints the server's answer and saves it as `dir/upload.json`, the
+    /// request body as `dir/contribution.json` (what `echomap-agent upload` sends again).
     pub fn upload(&self, out: &RunOutput, run: &str, dir: &Path) -> Result<()> {
         let c = Contribution {
             contributor: Some(self.contributor.clone()),
@@ -111,9 +112,48 @@ impl Remote {
             traveled_m: Some(out.rows.last().map(|r| r.traveled_m).unwrap_or(0.0)),
             map: out.map.clone().into(),
         };
+        std::fs::write(
+            dir.join(CONTRIBUTION_FILE),
+            serde_json::to_string_pretty(&c)?,
+        )?;
+        self.send(&c, None, dir)
+    }
+
+    /// Sends the contribution saved in `dir` (by a run with `--server`) again, after the
+    /// server refused it as undecided: when the map has grown, it may now decide.
+    pub fn upload_again(&self, dir: &Path) -> Result<()> {
+        let path = dir.join(CONTRIBUTION_FILE);
+        let c: Contribution =
+            serde_json::from_str(&std::fs::read_to_string(&path).with_context(|| {
+                format!("reading {} (written by run --server)", path.display())
+            })?)
+            .with_context(|| format!("parsing {}", path.display()))?;
+        let last = std::fs::read_to_string(dir.join(UPLOAD_FILE))
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok());
+        let status = last.as_ref().and_then(|v| v["status"].as_str());
+        if status == Some("accepted") {
+            anyhow::bail!(
+                "{} was already merged (see {}); it is not sent twice",
+                path.display(),
+                dir.join(UPLOAD_FILE).display()
+            );
+        }
+        let refused = last
+            .as_ref()
+            .and_then(|v| v["response"]["contribution"].as_i64());
+        self.send(&c, refused, dir)
+    }
+
+    fn send(&self, c: &Contribution, refused: Option<i64>, dir: &Path) -> Result<()> {
         let outcome = self
             .rt
-            .block_on(self.client.upload(&self.map, &c))
+            .block_on(async {
+                match refused {
+                    Some(id) => self.client.upload_again(&self.map, c, id).await,
+                    None => self.client.upload(&self.map, c).await,
+                }
+            })
             .with_context(|| format!("uploading to map {:?}", self.map))?;
         let saved = match &outcome {
             UploadOutcome::Accepted(v) => {
@@ -135,11 +175,23 @@ impl Remote {
                 );
                 serde_json::json!({"status": "rejected", "response": p})
             }
+            UploadOutcome::Undecided(p) => {
+                println!(
+                    "upload undecided (map unchanged): {}\nthe map is kept in {}; send it again later with: echomap-agent upload {} --server URL --map {}",
+                    p["detail"].as_str().unwrap_or("?"),
+                    dir.join(CONTRIBUTION_FILE).display(),
+                    dir.display(),
+                    self.map
+                );
+                serde_json::json!({"status": "undecided", "response": p})
+            }
         };
-        std::fs::write(
-            dir.join("upload.json"),
-            serde_json::to_string_pretty(&saved)?,
-        )?;
+        std::fs::write(dir.join(UPLOAD_FILE), serde_json::to_string_pretty(&saved)?)?;
         Ok(())
     }
 }
+
+/// The request body of a run's upload, kept in its output directory.
+pub const CONTRIBUTION_FILE: &str = "contribution.json";
+/// The server's answer to a run's last upload.
+pub const UPLOAD_FILE: &str = "upload.json";

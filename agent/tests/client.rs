@@ -137,6 +137,39 @@ async fn an_unmatched_upload_is_reported_as_rejected() {
 }
 
 #[tokio::test]
+async fn an_undecided_upload_is_reported_as_undecided_and_sent_again_with_a_new_key() {
+    let server = MockServer::start().await;
+    Mock::given(method("POST"))
+        .respond_with(problem(422, "undecided"))
+        .expect(2)
+        .mount(&server)
+        .await;
+    let c = client(&server.uri());
+    let first = c.upload("hall", &contribution()).await.unwrap();
+    assert!(matches!(first, UploadOutcome::Undecided(p) if p["status"] == 422));
+    let again = c.upload_again("hall", &contribution(), 7).await.unwrap();
+    assert!(matches!(again, UploadOutcome::Undecided(_)));
+    // a deliberate new attempt after a refusal carries its own Idempotency-Key (the server
+    // would answer a reused key with the stored refusal)
+    let keys: Vec<String> = server
+        .received_requests()
+        .await
+        .unwrap()
+        .iter()
+        .map(|r| {
+            r.headers
+                .get("idempotency-key")
+                .unwrap()
+                .to_str()
+                .unwrap()
+                .to_owned()
+        })
+        .collect();
+    assert_eq!(keys.len(), 2);
+    assert_ne!(keys[0], keys[1]);
+}
+
+#[tokio::test]
 async fn conditional_get_sends_the_version_and_handles_304() {
     let server = MockServer::start().await;
     Mock::given(method("GET"))

@@ -51,6 +51,10 @@ pub enum ApiError {
     IdempotencyMismatch,
     #[error("the contribution could not be matched to the map: {reason}")]
     Unmatched { reason: String, contribution: i64 },
+    #[error(
+        "the contribution shares too little with the map to decide; keep it and try again when the map has grown: {reason}"
+    )]
+    Undecided { reason: String, contribution: i64 },
     #[error("unsupported media type: {0}")]
     UnsupportedMediaType(String),
     #[error("rate limit exceeded; retry after {retry_after_s} s")]
@@ -78,7 +82,7 @@ impl ApiError {
             Conflict(_) => StatusCode::CONFLICT,
             PayloadTooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
             UnsupportedMediaType(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
-            Invalid { .. } | IdempotencyMismatch | Unmatched { .. } => {
+            Invalid { .. } | IdempotencyMismatch | Unmatched { .. } | Undecided { .. } => {
                 StatusCode::UNPROCESSABLE_ENTITY
             }
             RateLimited { .. } | QuotaExceeded { .. } => StatusCode::TOO_MANY_REQUESTS,
@@ -102,6 +106,7 @@ impl ApiError {
             Invalid { .. } => "invalid-field",
             IdempotencyMismatch => "idempotency-key-reused",
             Unmatched { .. } => "unmatched",
+            Undecided { .. } => "undecided",
             RateLimited { .. } => "rate-limited",
             QuotaExceeded { .. } => "quota-exceeded",
             Unavailable(_) => "unavailable",
@@ -120,7 +125,9 @@ impl ApiError {
         };
         let (field, contribution) = match self {
             ApiError::Invalid { field, .. } => (Some(field.clone()), None),
-            ApiError::Unmatched { contribution, .. } => (None, Some(*contribution)),
+            ApiError::Unmatched { contribution, .. } | ApiError::Undecided { contribution, .. } => {
+                (None, Some(*contribution))
+            }
             _ => (None, None),
         };
         Problem {

@@ -15,6 +15,7 @@ use crate::state::{AppState, MapRef, SharedState, render_json};
 use crate::storage::{CommitError, NewVersion, PendingCommit, Respond};
 use echomap_shared::geometry::Transform2;
 use echomap_shared::map::TransmitterMap;
+use echomap_shared::matching::MatchDecision;
 use std::sync::Arc;
 use std::time::Instant;
 use tokio::sync::mpsc;
@@ -425,10 +426,18 @@ fn entry(
             c.reason = Some(reason.clone());
             c.inliers = Some(matched.inliers as i64);
             c.score = matched.score.is_finite().then_some(matched.score);
+            let undecided = matched.decision == MatchDecision::Undecided;
             let respond: Respond = Box::new(move |id, _| {
-                let p = ApiError::Unmatched {
-                    reason,
-                    contribution: id,
+                let p = if undecided {
+                    ApiError::Undecided {
+                        reason,
+                        contribution: id,
+                    }
+                } else {
+                    ApiError::Unmatched {
+                        reason,
+                        contribution: id,
+                    }
                 }
                 .problem();
                 (p.status, problem_body(&p))

@@ -52,7 +52,8 @@ fn replay_stored(s: StoredResponse) -> Response {
 
 /// Upload a user map (agent frame) with metadata. Requires `Idempotency-Key`. The first
 /// contribution defines the map frame; later ones are matched (RANSAC) and merged into a new
-/// version committed with the contribution. Unmatched uploads are stored as rejected → 422.
+/// version committed with the contribution. Uploads that match no part of the map
+/// (`unmatched`) or share too little with it to decide (`undecided`) are stored as rejected → 422.
 #[utoipa::path(post, path = "/v1/maps/{map}/contributions", tag = "contributions",
     params(("map" = String, Path),
         ("Idempotency-Key" = String, Header, description = "unique per upload; retries reuse it")),
@@ -63,7 +64,7 @@ fn replay_stored(s: StoredResponse) -> Response {
         (status = 401, body = Problem), (status = 403, body = Problem), (status = 404, body = Problem),
         (status = 409, body = Problem, description = "same key still in progress"),
         (status = 413, body = Problem), (status = 415, body = Problem),
-        (status = 422, body = Problem, description = "invalid map (field named), key reused with another body, or unmatched (stored as rejected)"),
+        (status = 422, body = Problem, description = "invalid map (field named), key reused with another body, or refused by the matcher: `unmatched` or `undecided` (stored as rejected, map unchanged)"),
         (status = 429, body = Problem, description = "write rate limit, or the contributor's quota of rejected contributions, exceeded (Retry-After)")))]
 pub async fn post_contribution(
     State(app): State<SharedState>,

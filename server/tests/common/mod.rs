@@ -269,3 +269,11 @@ pub async fn seeded_map(c: &reqwest::Client, s: &TestServer, name: &str) -> Vec<
     }
     bodies
 }
+
+/// Whether a problem document refuses a contribution for what it contains: it matched no part
+/// of the map (`unmatched`) or shares too little with it to decide (`undecided`).
+pub fn is_refusal(p: &Value) -> bool {
+    p["type"]
+        .as_str()
+        .is_some_and(|t| t.ends_with("/unmatched") || t.ends_with("/undecided"))
+}

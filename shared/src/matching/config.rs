@@ -185,11 +185,39 @@ impl MatchConfig {
     }
 }
 
+/// What the acceptance test concluded about two maps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MatchDecision {
+    /// the maps share a part, under the transform found: merge
+    Accepted,
+    /// the overlap could have shown a common part, and it did not: the maps disagree where they
+    /// overlap, or share nothing
+    Rejected,
+    /// the maps share too little to decide either way (too few transmitters in the overlap,
+    /// or inliers nearly on a line): not merged; the user map is worth another try once the
+    /// prior has grown
+    Undecided,
+}
+
+impl MatchDecision {
+    /// The decision's name as JSON and the HTTP API spell it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            MatchDecision::Accepted => "accepted",
+            MatchDecision::Rejected => "rejected",
+            MatchDecision::Undecided => "undecided",
+        }
+    }
+}
+
 /// Outcome of matching.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MatchResult {
-    /// whether the match passed the acceptance test
+    /// whether the match passed the acceptance test (`decision` is `Accepted`)
     pub accepted: bool,
+    /// what the test concluded
+    pub decision: MatchDecision,
     /// maps agent-frame coordinates into the map frame
     pub map_from_agent: Isometry2<f64>,
     /// (user index, prior index) into the maps' transmitter lists
@@ -209,9 +237,10 @@ pub struct MatchResult {
 }
 
 impl MatchResult {
-    pub(super) fn rejected(reason: String, iterations: usize) -> Self {
+    pub(super) fn refused(decision: MatchDecision, reason: String, iterations: usize) -> Self {
         MatchResult {
             accepted: false,
+            decision,
             map_from_agent: Isometry2::identity(),
             correspondences: Vec::new(),
             residuals_m: Vec::new(),

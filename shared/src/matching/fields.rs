@@ -123,6 +123,35 @@ pub fn related(rng: &mut impl Rng) -> FieldPair {
     }
 }
 
+/// A dense prior (20–40 transmitters) and a user map that shares too little with it to decide:
+/// either 3–4 user transmitters, all of them in the prior, or a user field of 8–40 beside the
+/// prior's square that reaches into it with only 3–4 transmitters, all of them shared.
+pub fn small_overlap(rng: &mut impl Rng) -> FieldPair {
+    let side = rng.random_range(50.0..=100.0);
+    let std = rng.random_range(0.2..=0.5);
+    let n_p = rng.random_range(20..=40usize);
+    let prior_pts: Vec<[f64; 3]> = (0..n_p).map(|_| point(side, rng)).collect();
+    let shared = rng.random_range(3..=4usize);
+    let mut user_pts: Vec<[f64; 3]> = prior_pts[..shared].to_vec();
+    if rng.random::<bool>() {
+        // a user field beside the prior's square (to its right, a gap of 10 m)
+        let n_u = rng.random_range(8..=40usize);
+        user_pts.extend((shared..n_u).map(|_| {
+            let [x, y, b] = point(side, rng);
+            [x + side + 10.0, y, b]
+        }));
+    }
+    let shared = user_pts.iter().filter(|p| p[0] <= side).count();
+    let frame = random_frame(rng);
+    FieldPair {
+        user: map_of(&user_pts, std, &frame, "u", rng),
+        prior: map_of(&prior_pts, std, &Isometry2::identity(), "p", rng),
+        truth: frame.inverse(),
+        shared,
+        std,
+    }
+}
+
 impl FieldPair {
     /// Whether `r` recovered a related pair: accepted, and its transform puts every shared
     /// transmitter within 3σ of where the truth puts it.

@@ -97,9 +97,10 @@ pub fn match_maps(
     let u = candidates(user, cfg);
     let p = candidates(prior, cfg);
     if u.len() < 3 || p.len() < 3 {
-        return MatchResult::rejected(
+        return MatchResult::refused(
+            MatchDecision::Undecided,
             format!(
-                "too few converged transmitters: {} in the user map, {} in the prior map (3 needed)",
+                "too few converged transmitters to decide: {} in the user map, {} in the prior map (3 needed)",
                 u.len(),
                 p.len()
             ),
@@ -113,6 +114,10 @@ pub fn match_maps(
     let grid = Grid::new(&p, cfg.inlier_threshold_m.max(1e-3));
     let ln_area = ln_clutter_area(&p, cfg);
     let hex = prior.grid();
+    let overlap = Overlap::new(&u, &p, cfg);
+    // a consistent triple whose transform overlaps the maps too little to decide: when the
+    // best hypothesis is not accepted, it may still be this explanation
+    let mut undecidable: Option<BestCase> = None;
 
     let mut best: Option<(f64, f64, Hypothesis)> = None;
     let mut best_count = 0usize;
@@ -179,6 +184,9 @@ pub fn match_maps(
                     {
                         continue;
                     }
+                    if undecidable.is_none() {
+                        undecidable = overlap.undecidable(Some(&iso));
+                    }
                     // LO-RANSAC: local optimization only for hypotheses that do at least as
                     // well as the best so far on a single pass
                     let Some(count) = quick_count(&iso, &u, &p, &grid, cfg, best_count.max(3))
@@ -208,14 +216,37 @@ pub fn match_maps(
         }
     }
     let Some((score, vis, h)) = best else {
-        return MatchResult::rejected("no consistent transmitter triple found".into(), it);
+        // nothing consistent: a refusal only says something when the maps could have shown
+        // a common part
+        let best = overlap.best_case(None);
+        return if best.false_alarms <= cfg.max_false_alarms {
+            MatchResult::refused(
+                MatchDecision::Rejected,
+                "no consistent transmitter triple found: the maps share nothing".into(),
+                it,
+            )
+        } else {
+            MatchResult::refused(
+                MatchDecision::Undecided,
+                format!(
+                    "no consistent transmitter triple found, and {} user and {} prior transmitters are too few to decide (expected false alarms even if all agreed {:.2e} > {:.0e})",
+                    u.len(),
+                    p.len(),
+                    best.false_alarms,
+                    cfg.max_false_alarms
+                ),
+                it,
+            )
+        };
     };
     let nfa = false_alarms(&h, &u, &p, cfg);
     let mirror = mirror_excess_chi2(&h, &u, &p);
+    let accepted = h.pairs.len() >= cfg.min_inliers
+        && nfa <= cfg.max_false_alarms
+        && mirror >= cfg.min_mirror_chi2;
     let mut result = MatchResult {
-        accepted: h.pairs.len() >= cfg.min_inliers
-            && nfa <= cfg.max_false_alarms
-            && mirror >= cfg.min_mirror_chi2,
+        accepted,
+        decision: MatchDecision::Accepted,
         map_from_agent: h.iso,
         correspondences: h
             .pairs
@@ -229,21 +260,60 @@ pub fn match_maps(
         reason: None,
         iterations: it,
     };
-    if h.pairs.len() < cfg.min_inliers {
-        result.reason = Some(format!(
-            "only {} inliers, {} needed",
-            result.inliers, cfg.min_inliers
-        ));
-    } else if mirror < cfg.min_mirror_chi2 {
-        result.reason = Some(format!(
-            "the {} inliers are nearly collinear: a mirror image fits them almost as well (χ² worse by {mirror:.1} < {})",
-            result.inliers, cfg.min_mirror_chi2
-        ));
-    } else if !result.accepted {
-        result.reason = Some(format!(
-            "{} inliers could be chance in maps this dense (expected false alarms {nfa:.2e} > {:.0e})",
-            result.inliers, cfg.max_false_alarms
-        ));
+    if accepted {
+        return result;
     }
+    let best = overlap.best_case(Some(&h.iso));
+    let (decision, reason) = if mirror < cfg.min_mirror_chi2 {
+        (
+            MatchDecision::Undecided,
+            format!(
+                "the {} inliers are nearly collinear: a mirror image fits them almost as well (χ² worse by {mirror:.1} < {})",
+                result.inliers, cfg.min_mirror_chi2
+            ),
+        )
+    } else if best.false_alarms > cfg.max_false_alarms {
+        (
+            MatchDecision::Undecided,
+            format!(
+                "the maps overlap too little to decide: under the best transform {} user transmitters fall inside the prior's area and {} prior transmitters inside the user's; {} agree, and even if all agreed the expected false alarms would be {:.2e} > {:.0e}",
+                best.user_overlap,
+                best.prior_overlap,
+                result.inliers,
+                best.false_alarms,
+                cfg.max_false_alarms
+            ),
+        )
+    } else if let Some(small) = undecidable {
+        (
+            MatchDecision::Undecided,
+            format!(
+                "the maps may overlap too little to decide: the best transform ({} inliers) is not significant, and another that fits three transmitters puts only {} user transmitters inside the prior's area and {} prior transmitters inside the user's (expected false alarms even if all agreed {:.2e} > {:.0e})",
+                result.inliers,
+                small.user_overlap,
+                small.prior_overlap,
+                small.false_alarms,
+                cfg.max_false_alarms
+            ),
+        )
+    } else if h.pairs.len() < cfg.min_inliers {
+        (
+            MatchDecision::Rejected,
+            format!(
+                "only {} inliers, {} needed, among {} user transmitters inside the prior's area",
+                result.inliers, cfg.min_inliers, best.user_overlap
+            ),
+        )
+    } else {
+        (
+            MatchDecision::Rejected,
+            format!(
+                "{} inliers could be chance in maps this dense (expected false alarms {nfa:.2e} > {:.0e}; {} user transmitters inside the prior's area, {} prior transmitters inside the user's)",
+                result.inliers, cfg.max_false_alarms, best.user_overlap, best.prior_overlap
+            ),
+        )
+    };
+    result.decision = decision;
+    result.reason = Some(reason);
     result
 }

@@ -49,15 +49,97 @@ pub(super) fn mirror_excess_chi2(h: &Hypothesis, u: &[Cand], p: &[Cand]) -> f64 
     pair_chi2(&mirror, &h.pairs, u, p, true) - pair_chi2(&h.iso, &h.pairs, u, p, false)
 }
 
+/// One agreeing pair as evidence for the false-alarm count: chance partners per m² (ρ·f), the
+/// area of its uncertainty ellipse (m²) and where it sits (for the rotation annulus).
+struct Agreement {
+    rate: f64,
+    area: f64,
+    at: Point2<f64>,
+}
+
+/// The box a map's candidates cover, widened by `margin` on every side, and their density in it.
+#[derive(Debug, Clone, Copy)]
+struct Region {
+    x0: f64,
+    y0: f64,
+    x1: f64,
+    y1: f64,
+    density: f64,
+}
+
+impl Region {
+    fn of(c: &[Cand], margin: f64) -> Region {
+        let (x0, y0, x1, y1) = bounds(c);
+        let (x0, y0, x1, y1) = (x0 - margin, y0 - margin, x1 + margin, y1 + margin);
+        Region {
+            x0,
+            y0,
+            x1,
+            y1,
+            density: c.len() as f64 / ((x1 - x0) * (y1 - y0)),
+        }
+    }
+
+    fn contains(&self, q: &Point2<f64>) -> bool {
+        q.x >= self.x0 && q.x <= self.x1 && q.y >= self.y0 && q.y <= self.y1
+    }
+}
+
+/// The fraction of `others` that `c` is b-compatible with.
+fn compatible_fraction(c: &Cand, others: &[Cand], cfg: &MatchConfig) -> f64 {
+    others.iter().filter(|o| b_compatible(c, o, cfg)).count() as f64 / others.len() as f64
+}
+
+/// The false-alarm count of one side (see [`false_alarms`]): `agree` are the agreeing pairs,
+/// `trials` how many candidates of the testing map fall inside the other map's region, `n_from`
+/// and `n_to` the two maps' candidate counts.
+fn side_false_alarms(agree: &[Agreement], trials: usize, n_from: usize, n_to: usize) -> f64 {
+    let k = agree.len();
+    if k <= 2 {
+        return f64::INFINITY;
+    }
+    let n = trials.max(k) - 2;
+    let chance = |x: f64| (1.0 - (-x).exp()).clamp(1e-300, 1.0);
+    let first = (0..k)
+        .min_by(|&a, &b| {
+            (agree[a].rate * agree[a].area).total_cmp(&(agree[b].rate * agree[b].area))
+        })
+        .expect("k > 2 agreements");
+    let anchor = agree[first].at;
+    let (second, q_rot) = (0..k)
+        .filter(|&i| i != first)
+        .map(|i| {
+            let d = (agree[i].at - anchor).norm();
+            let r = (agree[i].area / std::f64::consts::PI).sqrt();
+            (
+                i,
+                chance(agree[i].rate * 2.0 * std::f64::consts::PI * d * 2.0 * r),
+            )
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .expect("k > 2 agreements");
+    let mut q: Vec<f64> = (0..k)
+        .filter(|&i| i != first && i != second)
+        .map(|i| chance(agree[i].rate * agree[i].area))
+        .collect();
+    q.sort_by(|a, b| a.total_cmp(b));
+    let (nu, np) = (n_from as f64, n_to as f64);
+    let ln_tests = nu.ln() + (nu - 1.0).ln() + np.ln() + (n as f64).ln();
+    let best_tail = (1..=k - 2)
+        .map(|j| ln_binomial_tail(n, j, q[j - 1]))
+        .fold(0.0, f64::min);
+    (ln_tests + q_rot.ln() + best_tail).exp()
+}
+
 /// Expected number of false alarms of a hypothesis (a-contrario test in the manner of ORSA,
 /// Moisan & Stival 2004): how many hypotheses, among all that RANSAC could have formed from
 /// these two maps, would fit at least as well by chance if the maps had no common part.
 ///
-/// Null model: the prior candidates are spread uniformly over their bounding box (density ρ)
-/// and independent of the user's. Under a transform, a user transmitter meets a chance partner
-/// at least as close as inlier i (inside the ellipse of area e_i through its residual, in the
-/// pair's covariance) and b-compatible with it (fraction f_i of the prior candidates) with
-/// probability q_i = 1 − exp(−ρ·e_i·f_i).
+/// Null model, seen from the user map: the prior candidates are spread uniformly over their
+/// bounding box (density ρ) and independent of the user's. Under a transform, a user
+/// transmitter meets a chance partner at least as close as inlier i (inside the ellipse of
+/// area e_i through its residual, in the pair's covariance) and b-compatible with it (fraction
+/// f_i of the prior candidates) with probability q_i = 1 − exp(−ρ·e_i·f_i).
 ///
 /// Every hypothesis is counted whether RANSAC tried it or not. A transform is fixed by a first
 /// pair (U·P choices for U user and P prior candidates: the translation, no evidence) and the
@@ -70,58 +152,168 @@ pub(super) fn mirror_excess_chi2(h: &Hypothesis, u: &[Cand], p: &[Cand]) -> f64 
 /// there without a counterpart is a trial that failed — evidence against the hypothesis. The
 /// false-alarm count is `U·(U − 1)·P · (n − 2) · q′ · min_j P(X ≥ j)` (the factor n − 2 pays for
 /// choosing j).
+///
+/// The same count seen from the prior map (the user candidates uniform over the user's box,
+/// the trials every prior candidate the inverse transform puts inside it) makes the prior
+/// transmitters where the user's map has transmitters, but no counterpart, count against the
+/// hypothesis too. The hypothesis must be significant under both null models: the larger of the
+/// two counts is returned.
 pub(super) fn false_alarms(h: &Hypothesis, u: &[Cand], p: &[Cand], cfg: &MatchConfig) -> f64 {
-    let k = h.pairs.len();
-    if k <= 2 {
+    if h.pairs.len() <= 2 {
         return f64::INFINITY;
     }
-    let (x0, y0, x1, y1) = bounds(p);
     let margin = cfg.inlier_threshold_m;
-    let (x0, x1, y0, y1) = (x0 - margin, x1 + margin, y0 - margin, y1 + margin);
-    let density = p.len() as f64 / ((x1 - x0) * (y1 - y0));
-    let inside = u
+    let (prior_region, user_region) = (Region::of(p, margin), Region::of(u, margin));
+    let inverse = h.iso.inverse();
+    let user_trials = u
         .iter()
-        .map(|c| h.iso * c.p)
-        .filter(|q| q.x >= x0 && q.x <= x1 && q.y >= y0 && q.y <= y1)
+        .filter(|c| prior_region.contains(&(h.iso * c.p)))
         .count();
-    let n = inside.max(k) - 2;
-    // per inlier: ρ·f (chance partners per m²) and the ellipse area e
-    let rate_area: Vec<(f64, f64)> = h
-        .pairs
+    let prior_trials = p
         .iter()
-        .zip(&h.ellipse_m2)
-        .map(|(&(i, _), &e)| {
-            let f =
-                p.iter().filter(|c| b_compatible(&u[i], c, cfg)).count() as f64 / p.len() as f64;
-            (density * f, e)
-        })
-        .collect();
-    let chance = |x: f64| (1.0 - (-x).exp()).clamp(1e-300, 1.0);
-    let first = (0..k)
-        .min_by(|&a, &b| {
-            (rate_area[a].0 * rate_area[a].1).total_cmp(&(rate_area[b].0 * rate_area[b].1))
-        })
-        .expect("k > 2 inliers");
-    let anchor = p[h.pairs[first].1].p;
-    let (second, q_rot) = (0..k)
-        .filter(|&i| i != first)
-        .map(|i| {
-            let (rate, e) = rate_area[i];
-            let d = (p[h.pairs[i].1].p - anchor).norm();
-            let r = (e / std::f64::consts::PI).sqrt();
-            (i, chance(rate * 2.0 * std::f64::consts::PI * d * 2.0 * r))
-        })
-        .min_by(|a, b| a.1.total_cmp(&b.1))
-        .expect("k > 2 inliers");
-    let mut q: Vec<f64> = (0..k)
-        .filter(|&i| i != first && i != second)
-        .map(|i| chance(rate_area[i].0 * rate_area[i].1))
-        .collect();
-    q.sort_by(|a, b| a.total_cmp(b));
-    let (nu, np) = (u.len() as f64, p.len() as f64);
-    let ln_tests = nu.ln() + (nu - 1.0).ln() + np.ln() + (n as f64).ln();
-    let best_tail = (1..=k - 2)
-        .map(|j| ln_binomial_tail(n, j, q[j - 1]))
-        .fold(0.0, f64::min);
-    (ln_tests + q_rot.ln() + best_tail).exp()
+        .filter(|c| user_region.contains(&(inverse * c.p)))
+        .count();
+    let agree = |from_user: bool| -> Vec<Agreement> {
+        h.pairs
+            .iter()
+            .zip(&h.ellipse_m2)
+            .map(|(&(i, j), &area)| {
+                let (rate, at) = if from_user {
+                    (
+                        prior_region.density * compatible_fraction(&u[i], p, cfg),
+                        p[j].p,
+                    )
+                } else {
+                    (
+                        user_region.density * compatible_fraction(&p[j], u, cfg),
+                        u[i].p,
+                    )
+                };
+                Agreement { rate, area, at }
+            })
+            .collect()
+    };
+    let user_side = side_false_alarms(&agree(true), user_trials, u.len(), p.len());
+    let prior_side = side_false_alarms(&agree(false), prior_trials, p.len(), u.len());
+    user_side.max(prior_side)
+}
+
+/// What two maps could show at best under a transform: the overlap (each map's candidates
+/// inside the other's region; without a transform, every candidate) and the false-alarm count
+/// if every candidate of the smaller overlap agreed with a partner at the expected distance
+/// (squared Mahalanobis distance 2, the mean of χ² with two degrees of freedom).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct BestCase {
+    /// user candidates inside the prior's region
+    pub(super) user_overlap: usize,
+    /// prior candidates inside the user's region
+    pub(super) prior_overlap: usize,
+    /// the false-alarm count of the best agreement the overlap allows
+    pub(super) false_alarms: f64,
+}
+
+/// Whether a transform leaves enough overlap to decide, for one pair of maps: the regions,
+/// b-compatible fractions and mean covariances computed once.
+pub(super) struct Overlap<'a> {
+    u: &'a [Cand],
+    p: &'a [Cand],
+    user_region: Region,
+    prior_region: Region,
+    /// per candidate: (ρ·f of its chance partners, its ellipse area at the expected distance)
+    u_evidence: Vec<(f64, f64)>,
+    p_evidence: Vec<(f64, f64)>,
+    min_inliers: usize,
+    max_false_alarms: f64,
+}
+
+impl<'a> Overlap<'a> {
+    pub(super) fn new(u: &'a [Cand], p: &'a [Cand], cfg: &MatchConfig) -> Self {
+        let margin = cfg.inlier_threshold_m;
+        let (user_region, prior_region) = (Region::of(u, margin), Region::of(p, margin));
+        let mean_cov =
+            |c: &[Cand]| c.iter().fold(Matrix2::zeros(), |a, x| a + x.cov) / c.len().max(1) as f64;
+        let evidence = |own: &[Cand], other: &[Cand], region: &Region| -> Vec<(f64, f64)> {
+            let partner = mean_cov(other);
+            own.iter()
+                .map(|c| {
+                    (
+                        region.density * compatible_fraction(c, other, cfg),
+                        std::f64::consts::PI
+                            * 2.0
+                            * (c.cov + partner).determinant().max(0.0).sqrt(),
+                    )
+                })
+                .collect()
+        };
+        Overlap {
+            u,
+            p,
+            u_evidence: evidence(u, p, &prior_region),
+            p_evidence: evidence(p, u, &user_region),
+            user_region,
+            prior_region,
+            min_inliers: cfg.min_inliers.max(3),
+            max_false_alarms: cfg.max_false_alarms,
+        }
+    }
+
+    /// The candidates of each map that `iso` puts inside the other's region (all without one).
+    fn sets(&self, iso: Option<&Isometry2<f64>>) -> (Vec<usize>, Vec<usize>) {
+        match iso {
+            Some(iso) => {
+                let inverse = iso.inverse();
+                (
+                    (0..self.u.len())
+                        .filter(|&i| self.prior_region.contains(&(iso * self.u[i].p)))
+                        .collect(),
+                    (0..self.p.len())
+                        .filter(|&j| self.user_region.contains(&(inverse * self.p[j].p)))
+                        .collect(),
+                )
+            }
+            None => ((0..self.u.len()).collect(), (0..self.p.len()).collect()),
+        }
+    }
+
+    /// The best case under `iso` (see [`BestCase`]).
+    pub(super) fn best_case(&self, iso: Option<&Isometry2<f64>>) -> BestCase {
+        let (ou, op) = self.sets(iso);
+        let k = ou.len().min(op.len());
+        // one side's best agreement: its k most telling overlap candidates
+        let side = |own: &[usize], cands: &[Cand], evidence: &[(f64, f64)], n_to: usize| {
+            let mut agree: Vec<Agreement> = own
+                .iter()
+                .map(|&i| Agreement {
+                    rate: evidence[i].0,
+                    area: evidence[i].1,
+                    at: cands[i].p,
+                })
+                .collect();
+            agree.sort_by(|a, b| (a.rate * a.area).total_cmp(&(b.rate * b.area)));
+            agree.truncate(k);
+            side_false_alarms(&agree, own.len(), cands.len(), n_to)
+        };
+        let false_alarms = if k < self.min_inliers {
+            f64::INFINITY
+        } else {
+            side(&ou, self.u, &self.u_evidence, self.p.len()).max(side(
+                &op,
+                self.p,
+                &self.p_evidence,
+                self.u.len(),
+            ))
+        };
+        BestCase {
+            user_overlap: ou.len(),
+            prior_overlap: op.len(),
+            false_alarms,
+        }
+    }
+
+    /// The best case under `iso` when it cannot decide: too few candidates overlap, or even
+    /// their perfect agreement would not be significant.
+    pub(super) fn undecidable(&self, iso: Option<&Isometry2<f64>>) -> Option<BestCase> {
+        let best = self.best_case(iso);
+        (best.false_alarms > self.max_false_alarms).then_some(best)
+    }
 }

@@ -50,6 +50,9 @@ pub enum Command {
     Match(MatchArgs),
     /// Match and merge a user map into a prior map; writes the merged map.
     Merge(MergeArgs),
+    /// Send a run's user map to the server again (the contribution a `run --server` kept in
+    /// its output directory), e.g. after the server found it undecided.
+    Upload(UploadArgs),
     /// Launch users as separate `echomap-agent run` processes against a map server.
     Crowd(CrowdArgs),
     /// Experiments of the papers.
@@ -320,6 +323,21 @@ pub struct DemoArgs {
 }
 
 #[derive(Debug, Args)]
+pub struct UploadArgs {
+    /// output directory of a `run --server` (holds contribution.json and upload.json)
+    pub dir: PathBuf,
+    /// map server base URL
+    #[arg(long, env = "ECHOMAP_SERVER")]
+    pub server: String,
+    /// map name on the server
+    #[arg(long, env = "ECHOMAP_MAP")]
+    pub map: String,
+    /// file holding the bearer token (first line that is not empty or a `#` comment)
+    #[arg(long, env = "ECHOMAP_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
 pub struct CrowdArgs {
     /// map server base URL
     #[arg(long, env = "ECHOMAP_SERVER")]
@@ -572,6 +590,13 @@ pub fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Merge(a) => merge_command(&a),
+        Command::Upload(a) => remote::Remote::connect(&remote::RemoteSpec {
+            server: a.server.clone(),
+            map: a.map.clone(),
+            token_file: a.token_file.clone(),
+            contributor: String::new(),
+        })?
+        .upload_again(&a.dir),
         Command::Evaluate(a) => {
             let scenario = load_scenario(&a.scenario, a.toa_only)?;
             let profile = scenario.sensor_profile(scenario.receiver.aoa);
