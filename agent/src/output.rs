@@ -125,8 +125,10 @@ pub fn write_run(
             serde_json::to_string_pretty(&summarize(out, truth, log))?,
         )?;
     }
-    std::fs::write(dir.join("map.json"), out.map.to_json_pretty())?;
     std::fs::write(dir.join("track.csv"), track_csv(&out.rows))?;
+    if out.map_error.is_none() {
+        std::fs::write(dir.join("map.json"), out.map.to_json_pretty())?;
+    }
     if out.had_prior {
         let mut s = String::from(
             "t,accepted,inliers,angle_rad,tx,ty,action,anchors,match_angle_rad,fused,reason\n",
@@ -159,6 +161,12 @@ pub fn write_run(
         if truth.is_some() {
             crate::plot::draw_error(&out.rows, &dir.join(format!("error.{ext}")))?;
         }
+    }
+    if let Some(e) = &out.map_error {
+        anyhow::bail!(
+            "the map could not be exported ({e}); the track and summary are in {}",
+            dir.display()
+        );
     }
     Ok(())
 }

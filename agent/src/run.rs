@@ -12,7 +12,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 #[derive(Debug)]
 pub struct RunOutput {
     pub rows: Vec<TrackRow>,
+    /// the user map (empty when it could not be exported: `map_error` says why)
     pub map: TransmitterMap,
+    /// why the map could not be exported; the track and summary are written all the same
+    pub map_error: Option<String>,
     pub filter: Filter,
     /// matching attempts against the prior map (empty without one)
     pub matches: Vec<MatchEvent>,
@@ -111,11 +114,18 @@ pub fn run_filter_with_prior(
     }
     bar.finish_and_clear();
     filter.finish();
-    let map = export_map(&filter)?;
+    let (map, map_error) = match export_map(&filter) {
+        Ok(map) => (map, None),
+        Err(e) => (
+            TransmitterMap::new(filter.config().hex_size_m, Vec::new())?,
+            Some(e.to_string()),
+        ),
+    };
     let had_prior = tracker.is_some();
     Ok(RunOutput {
         rows,
         map,
+        map_error,
         filter,
         matches: tracker.map(|t| t.events).unwrap_or_default(),
         had_prior,
@@ -157,14 +167,15 @@ fn select_by_evidence(with: RunOutput, alone: RunOutput) -> RunOutput {
         })
         .collect::<Vec<_>>();
     let prior_ahead = rows.last().is_none_or(|r| r.with_prior == Some(true));
-    let (map, filter) = if prior_ahead {
-        (with.map, with.filter)
+    let (map, map_error, filter) = if prior_ahead {
+        (with.map, with.map_error, with.filter)
     } else {
-        (alone.map, alone.filter)
+        (alone.map, alone.map_error, alone.filter)
     };
     RunOutput {
         rows,
         map,
+        map_error,
         filter,
         matches: with.matches,
         had_prior: true,

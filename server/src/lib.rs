@@ -18,6 +18,7 @@ pub mod routes;
 pub mod state;
 pub mod storage;
 pub mod synth;
+pub mod viewer;
 pub mod worker;
 
 pub use app::{Application, shutdown_signal};

@@ -103,6 +103,8 @@ pub struct MapRow {
     pub current_version: i64,
     /// accepted (not rolled back) contributions
     pub contributions: i64,
+    /// when the current version was committed (none before the first)
+    pub updated_ms: Option<i64>,
 }
 
 #[derive(Debug, Clone, sqlx::FromRow)]
@@ -467,7 +469,8 @@ impl Storage {
         on_reader!(self, |pool| {
             sqlx::query_as(
                 "SELECT m.id, m.name, m.private, m.created_ms, m.current_version,
-                        (SELECT COUNT(*) FROM contributions c WHERE c.map_id = m.id AND c.status = 'accepted') AS contributions
+                        (SELECT COUNT(*) FROM contributions c WHERE c.map_id = m.id AND c.status = 'accepted') AS contributions,
+                        (SELECT v.created_ms FROM versions v WHERE v.map_id = m.id AND v.number = m.current_version) AS updated_ms
                  FROM maps m WHERE m.name = $1",
             )
             .bind(name)
@@ -530,7 +533,8 @@ impl Storage {
         on_reader!(self, |pool| {
             sqlx::query_as(
                 "SELECT m.id, m.name, m.private, m.created_ms, m.current_version,
-                        (SELECT COUNT(*) FROM contributions c WHERE c.map_id = m.id AND c.status = 'accepted') AS contributions
+                        (SELECT COUNT(*) FROM contributions c WHERE c.map_id = m.id AND c.status = 'accepted') AS contributions,
+                        (SELECT v.created_ms FROM versions v WHERE v.map_id = m.id AND v.number = m.current_version) AS updated_ms
                  FROM maps m ORDER BY m.name",
             )
             .fetch_all(pool)

@@ -20,6 +20,9 @@ pub struct MapInfo {
     pub private: bool,
     /// RFC 3339
     pub created: String,
+    /// when the current version was committed, RFC 3339 (absent before the first)
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub updated: Option<String>,
 }
 
 /// The list of maps.

@@ -303,6 +303,61 @@ pub fn validate_cov(path: &str, cov: &Matrix3<f64>) -> Result<(), MapError> {
     Ok(())
 }
 
+/// What [`fit_to_limits`] left out.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Pruned {
+    /// transmitters dropped
+    pub transmitters: usize,
+    /// visibility cells dropped
+    pub cells: usize,
+}
+
+/// Brings transmitters within the format's limits on their number ([`MAX_TRANSMITTERS`]) and
+/// on the visibility cells over all of them ([`MAX_VISIBILITY_CELLS`]), keeping what carries
+/// the most evidence: the transmitters of largest existence × reliability, then the cells with
+/// the most observations (α + β), ties broken by position so the result is deterministic.
+/// Transmitters within the limits are returned unchanged.
+pub fn fit_to_limits(transmitters: &mut Vec<Transmitter>) -> Pruned {
+    let mut pruned = Pruned::default();
+    if transmitters.len() > MAX_TRANSMITTERS {
+        let mut order: Vec<usize> = (0..transmitters.len()).collect();
+        let worth = |t: &Transmitter| t.existence * t.reliability_m.max(1e-9);
+        order.sort_by(|&a, &b| {
+            worth(&transmitters[b])
+                .total_cmp(&worth(&transmitters[a]))
+                .then(a.cmp(&b))
+        });
+        let mut keep = vec![false; transmitters.len()];
+        for &i in &order[..MAX_TRANSMITTERS] {
+            keep[i] = true;
+        }
+        pruned.transmitters = transmitters.len() - MAX_TRANSMITTERS;
+        let mut k = 0;
+        transmitters.retain(|_| {
+            k += 1;
+            keep[k - 1]
+        });
+    }
+    let total: usize = transmitters.iter().map(|t| t.visibility.len()).sum();
+    if total > MAX_VISIBILITY_CELLS {
+        let mut cells: Vec<(f64, usize, HexCell)> = transmitters
+            .iter()
+            .enumerate()
+            .flat_map(|(i, t)| {
+                t.visibility
+                    .iter()
+                    .map(move |(c, b)| (b.alpha + b.beta, i, *c))
+            })
+            .collect();
+        cells.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        for &(_, i, c) in &cells[MAX_VISIBILITY_CELLS..] {
+            transmitters[i].visibility.remove(&c);
+        }
+        pruned.cells = total - MAX_VISIBILITY_CELLS;
+    }
+    pruned
+}
+
 fn validate(hex_size_m: f64, transmitters: &[Transmitter]) -> Result<(), MapError> {
     check_finite("hex_size_m", hex_size_m)?;
     if hex_size_m <= 0.0 {

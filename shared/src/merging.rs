@@ -70,6 +70,9 @@ pub struct MergeStats {
     pub added: usize,
     /// prior transmitters left unchanged
     pub kept: usize,
+    /// what the merged map left out to stay within the format's limits
+    /// ([`crate::map::fit_to_limits`])
+    pub pruned: crate::map::Pruned,
 }
 
 fn merge_pair(u: &Transmitter, p: &Transmitter, cfg: &MergeConfig) -> Transmitter {
@@ -125,6 +128,7 @@ pub fn merge_maps(
                 merged: 0,
                 added: user.len(),
                 kept: 0,
+                pruned: Default::default(),
             },
         ));
     }
@@ -176,6 +180,7 @@ pub fn merge_maps(
         added += 1;
     }
     let kept = touched.iter().filter(|&&t| !t).count();
+    let pruned = crate::map::fit_to_limits(&mut out);
     let map = TransmitterMap::new(prior.hex_size_m(), out)?;
     Ok((
         map,
@@ -183,6 +188,7 @@ pub fn merge_maps(
             merged,
             added,
             kept,
+            pruned,
         },
     ))
 }

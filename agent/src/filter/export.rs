@@ -9,6 +9,9 @@
 //!   groups), then reduced by Runnalls merging to `export_max_components`;
 //! - visibility: the evidence counts of the filter's hex grid.
 //!
+//! A map beyond the format's limits (transmitters, visibility cells) keeps what carries the
+//! most evidence (`echomap_shared::map::fit_to_limits`).
+//!
 //! Particles that share a transmitter through resampling are counted once with their summed
 //! weight, so the cost is driven by distinct transmitter states, not by the particle count.
 
@@ -134,6 +137,9 @@ pub fn export_map(filter: &Filter) -> Result<TransmitterMap, MapError> {
             visibility: filter.visibility().cells(id),
         });
     }
+    // a long walk through rich multipath can leave more transmitters or visibility cells than
+    // the format allows: keep those with the most evidence
+    echomap_shared::map::fit_to_limits(&mut transmitters);
     TransmitterMap::new(cfg.hex_size_m, transmitters)
 }
 

@@ -23,6 +23,7 @@ fn info(row: &MapRow) -> MapInfo {
         contributions: row.contributions,
         private: row.private,
         created: rfc3339(row.created_ms),
+        updated: row.updated_ms.map(rfc3339),
     }
 }
 

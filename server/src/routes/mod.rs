@@ -54,11 +54,14 @@ pub fn api(state: SharedState) -> (Router, utoipa::openapi::OpenApi) {
     (router, doc)
 }
 
-/// The whole application: API routes, `/openapi.json` and the API docs page at `/docs`
-/// (Swagger UI, assets embedded in the binary).
+/// The whole application: API routes, `/openapi.json`, the API docs page at `/docs` (Swagger
+/// UI) and the map viewer at `/viewer/` (`/` leads there); assets embedded in the binary.
 pub fn app(state: SharedState) -> Router {
     let (router, doc) = api(state);
     router
         .merge(SwaggerUi::new("/docs").url("/openapi.json", doc))
+        .route("/", axum::routing::get(crate::viewer::to_page))
+        .route("/viewer", axum::routing::get(crate::viewer::to_page))
+        .route("/viewer/", axum::routing::get(crate::viewer::page))
         .fallback(ops::not_found)
 }

@@ -206,6 +206,75 @@ fn size_limits_are_enforced() {
 }
 
 #[test]
+fn maps_beyond_the_limits_keep_what_carries_the_most_evidence() {
+    // 3 transmitters with 40,000 cells each: 120,000 > 100,000; the cells of transmitter i
+    // at column q carry i + q/100,000 observations, so the weakest are transmitter 0's
+    let t = |i: usize| Transmitter {
+        id: format!("t{i}"),
+        components: vec![comp(1.0, [i as f64, 0.0, 0.0])],
+        existence: 0.5 + 0.1 * i as f64,
+        reliability_m: 1.0,
+        visibility: (0..40_000)
+            .map(|q| {
+                let n = i as f64 + 1.0 + q as f64 / 100_000.0;
+                (
+                    HexCell { q, r: 0 },
+                    Beta {
+                        alpha: n,
+                        beta: 0.0,
+                    },
+                )
+            })
+            .collect(),
+    };
+    let mut txs: Vec<_> = (0..3).map(t).collect();
+    let untouched = txs.clone();
+    assert!(TransmitterMap::new(2.0, txs.clone()).is_err());
+    let pruned = fit_to_limits(&mut txs);
+    assert_eq!(
+        pruned,
+        Pruned {
+            transmitters: 0,
+            cells: 20_000
+        }
+    );
+    let cells: Vec<usize> = txs.iter().map(|t| t.visibility.len()).collect();
+    assert_eq!(cells, [20_000, 40_000, 40_000]);
+    // transmitter 0 kept its 20,000 best cells, the columns 20,000 and up
+    assert_eq!(
+        txs[0].visibility.keys().next(),
+        Some(&HexCell { q: 20_000, r: 0 })
+    );
+    assert_eq!(txs[1].visibility, untouched[1].visibility);
+    assert!(TransmitterMap::new(2.0, txs.clone()).is_ok());
+    // within the limits nothing changes
+    let mut again = txs.clone();
+    assert_eq!(fit_to_limits(&mut again), Pruned::default());
+    assert_eq!(again, txs);
+    // too many transmitters: the least existence × reliability go, order kept
+    let mut many: Vec<Transmitter> = (0..MAX_TRANSMITTERS + 3)
+        .map(|i| Transmitter {
+            id: format!("m{i}"),
+            components: vec![comp(1.0, [0.0; 3])],
+            existence: if i % 1000 == 7 && i < 3000 { 0.01 } else { 0.9 },
+            reliability_m: 5.0,
+            visibility: BTreeMap::new(),
+        })
+        .collect();
+    let pruned = fit_to_limits(&mut many);
+    assert_eq!(pruned.transmitters, 3);
+    assert_eq!(many.len(), MAX_TRANSMITTERS);
+    assert!(
+        many.iter()
+            .all(|t| t.id != "m7" && t.id != "m1007" && t.id != "m2007")
+    );
+    assert!(many.windows(2).all(|w| {
+        let n = |t: &Transmitter| t.id[1..].parse::<usize>().unwrap();
+        n(&w[0]) < n(&w[1])
+    }));
+}
+
+#[test]
 fn non_finite_values_are_rejected_in_memory_too() {
     let mut t = sample_map().into_transmitters();
     t[0].components[0].mean.x = f64::NAN;

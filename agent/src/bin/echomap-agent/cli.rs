@@ -703,10 +703,12 @@ fn run_command(a: &RunArgs) -> Result<()> {
             t,
         )?,
     };
-    output::write_run(&out, truth.as_ref(), &log, &a.out)?;
+    // the track and summary are written even when the map is not
+    let written = output::write_run(&out, truth.as_ref(), &log, &a.out);
     std::fs::write(a.out.join("config.toml"), resolved.annotated_toml())
         .with_context(|| format!("writing {}", a.out.join("config.toml").display()))?;
     output::print_summary(&out, truth.as_ref(), &log);
+    written?;
     if let Some(r) = &remote {
         let run = format!("{}-seed{}", a.input.track, a.seed);
         r.upload(&out, &run, &a.out)?;
