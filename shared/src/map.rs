@@ -542,14 +542,29 @@ pub mod wire {
         pub cov: [[f64; 3]; 3],
     }
 
+    /// An axial coordinate: a JSON integer in the i32 range, written as `3` or `3.0` (JSON
+    /// does not tell the two apart).
+    fn axial<'de, D: serde::Deserializer<'de>>(d: D) -> Result<i32, D::Error> {
+        let v = f64::deserialize(d)?;
+        if v.fract() == 0.0 && v >= f64::from(i32::MIN) && v <= f64::from(i32::MAX) {
+            Ok(v as i32)
+        } else {
+            Err(serde::de::Error::custom(format!(
+                "expected an integer in the i32 range, got {v}"
+            )))
+        }
+    }
+
     /// A visibility cell as JSON carries it.
     #[derive(Debug, Clone, Serialize, Deserialize)]
     #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
     #[serde(deny_unknown_fields)]
     pub struct CellDoc {
         /// axial column
+        #[serde(deserialize_with = "axial")]
         pub q: i32,
         /// axial row
+        #[serde(deserialize_with = "axial")]
         pub r: i32,
         /// evidence of being seen from the cell
         pub alpha: f64,

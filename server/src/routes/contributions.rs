@@ -164,6 +164,7 @@ pub async fn post_contribution(
 }
 
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 pub struct PageQuery {
     /// return contributions with id greater than this (default 0)
     #[serde(default)]
@@ -194,6 +195,11 @@ pub async fn list_contributions(
     if !(1..=1000).contains(&q.limit) {
         return Err(ApiError::BadRequest {
             detail: format!("limit must lie in 1..=1000, got {}", q.limit),
+        });
+    }
+    if q.after < 0 {
+        return Err(ApiError::BadRequest {
+            detail: format!("after must be ≥ 0, got {}", q.after),
         });
     }
     let row = app.map_ref(name.as_str()).await?;

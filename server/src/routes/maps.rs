@@ -69,10 +69,11 @@ pub async fn put_map(
     let name = MapName::parse(&name)?;
     let who = authorize_write(&app, &name, &headers)?;
     app.check_rate(&who).await?;
+    // no body, or `null`: the default settings
     let settings: CreateMap = if body.iter().all(u8::is_ascii_whitespace) {
         CreateMap::default()
     } else {
-        parse_json(&body)?
+        parse_json::<Option<CreateMap>>(&body)?.unwrap_or_default()
     };
     let (row, created) = app
         .storage

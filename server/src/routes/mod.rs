@@ -2,6 +2,7 @@
 //! same declarations, so it cannot miss a route.
 
 mod common;
+mod contract;
 mod contributions;
 mod extract;
 mod maps;
@@ -30,7 +31,7 @@ pub use extract::parse_json;
 struct ApiDoc;
 
 /// The router and its OpenAPI document.
-pub fn api(state: SharedState) -> (Router, utoipa::openapi::OpenApi) {
+pub fn api(state: SharedState) -> (Router, serde_json::Value) {
     let limit = state.config.body_limit;
     let (router, doc) = OpenApiRouter::with_openapi(ApiDoc::openapi())
         .routes(routes!(ops::healthz))
@@ -46,6 +47,7 @@ pub fn api(state: SharedState) -> (Router, utoipa::openapi::OpenApi) {
         ))
         .routes(routes!(contributions::delete_contribution))
         .split_for_parts();
+    let doc = contract::tighten(doc);
     let router = router
         .route_layer(axum::middleware::from_fn(crate::metrics::track))
         .layer(DefaultBodyLimit::max(limit))
@@ -59,7 +61,7 @@ pub fn api(state: SharedState) -> (Router, utoipa::openapi::OpenApi) {
 pub fn app(state: SharedState) -> Router {
     let (router, doc) = api(state);
     router
-        .merge(SwaggerUi::new("/docs").url("/openapi.json", doc))
+        .merge(SwaggerUi::new("/docs").external_url_unchecked("/openapi.json", doc))
         .route("/", axum::routing::get(crate::viewer::to_page))
         .route("/viewer", axum::routing::get(crate::viewer::to_page))
         .route("/viewer/", axum::routing::get(crate::viewer::page))
