@@ -2,6 +2,9 @@
 //! stream of uploads and restarted on the same SQLite file. Every upload answered 201 must
 //! survive, the file must pass `PRAGMA integrity_check`, and uploads retried with their
 //! Idempotency-Key after a crash must not be merged twice.
+//!
+//! `ECHOMAP_CRASH_ROUNDS` sets the number of kills (default 20, as in every test run);
+//! `tests/crash/run.sh 100` is the long run.
 
 mod common;
 
@@ -29,7 +32,10 @@ async fn acknowledged_contributions_survive_sigkill() {
     let mut pending: BTreeMap<String, Value> = BTreeMap::new();
     let mut acked: BTreeMap<String, Value> = BTreeMap::new();
     let mut next = 0u64;
-    let rounds = 20;
+    let rounds: usize = std::env::var("ECHOMAP_CRASH_ROUNDS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(20);
     let mut interrupted = 0;
     for round in 0..rounds {
         let (mut child, base) = spawn_server_process(&db, &tokens).await;
@@ -133,7 +139,6 @@ async fn acknowledged_contributions_survive_sigkill() {
         .fetch_one(&pool)
         .await
         .unwrap();
-    assert_eq!(check, "ok");
     let rows: Vec<(String, String, i64)> = sqlx::query_as(
         "SELECT c.idempotency_key, c.status, v.number FROM contributions c
          LEFT JOIN versions v ON v.contribution_id = c.id AND v.kind = 'merge'
@@ -143,6 +148,18 @@ async fn acknowledged_contributions_survive_sigkill() {
     .await
     .unwrap();
     let stored: BTreeSet<&str> = rows.iter().map(|r| r.0.as_str()).collect();
+    let lost = acked
+        .keys()
+        .filter(|k| !stored.contains(k.as_str()))
+        .count();
+    eprintln!(
+        "after {rounds} SIGKILL rounds: {} contributions acknowledged, {lost} of them lost, \
+         {} merged twice, PRAGMA integrity_check: {check}",
+        acked.len(),
+        rows.len() - stored.len()
+    );
+    assert_eq!(check, "ok");
+    assert_eq!(lost, 0, "acknowledged contributions lost");
     assert_eq!(stored.len(), rows.len(), "an upload was merged twice");
     for (key, v) in &acked {
         assert!(stored.contains(key.as_str()), "acknowledged {key} lost");
