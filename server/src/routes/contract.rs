@@ -117,6 +117,20 @@ fn tighten_parameters(op: &mut Value) {
     }
 }
 
+/// Who may call an operation: writes need a bearer token; reads of public maps need none (a
+/// private map's reads need a token allowed for it); the operational endpoints are open.
+fn security_of(method: &str, path: &str) -> Value {
+    if !path.starts_with("/v1/") {
+        json!([])
+    } else if matches!(method, "put" | "delete")
+        || (method == "post" && path.ends_with("/contributions"))
+    {
+        json!([{"bearer": []}])
+    } else {
+        json!([{}, {"bearer": []}])
+    }
+}
+
 fn tighten_responses(method: &str, path: &str, op: &mut Value) {
     let Some(responses) = op.get_mut("responses").and_then(Value::as_object_mut) else {
         return;
@@ -350,10 +364,15 @@ pub fn tighten(doc: utoipa::openapi::OpenApi) -> Value {
             for (method, op) in item.iter_mut() {
                 tighten_parameters(op);
                 tighten_responses(method, path, op);
+                op["security"] = security_of(method, path);
             }
         }
         add_links(paths);
     }
+    v["components"]["securitySchemes"] = json!({
+        "bearer": {"type": "http", "scheme": "bearer",
+                   "description": "a token from the server's token file (`echomap-server --token-file`)"}
+    });
     if let Some(schemas) = v
         .get_mut("components")
         .and_then(|c| c.get_mut("schemas"))
