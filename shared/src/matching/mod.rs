@@ -23,7 +23,7 @@
 //! for the k prior pairs of consistent distance (at most `max_hypotheses_per_sample` tried), O(U) for each single-pass check with a uniform
 //! grid of prior means, and O(U·iterations) for each local optimization.
 
-use crate::hexgrid::HexGrid;
+use crate::hexgrid::{HexCell, HexGrid};
 use crate::map::{Transmitter, TransmitterMap, transform_visibility};
 use nalgebra::{Isometry2, Matrix2, Matrix3, Point2, Vector2, Vector3};
 use rand::{Rng, RngExt};

@@ -185,7 +185,7 @@ pub fn match_maps(
                         continue;
                     }
                     if undecidable.is_none() {
-                        undecidable = overlap.undecidable(Some(&iso));
+                        undecidable = overlap.too_small(&iso);
                     }
                     // LO-RANSAC: local optimization only for hypotheses that do at least as
                     // well as the best so far on a single pass
@@ -239,7 +239,7 @@ pub fn match_maps(
             )
         };
     };
-    let nfa = false_alarms(&h, &u, &p, cfg);
+    let nfa = false_alarms(&h, &u, &p, &Walked::new(user, prior, &p), cfg);
     let mirror = mirror_excess_chi2(&h, &u, &p);
     let accepted = h.pairs.len() >= cfg.min_inliers
         && nfa <= cfg.max_false_alarms
@@ -288,12 +288,8 @@ pub fn match_maps(
         (
             MatchDecision::Undecided,
             format!(
-                "the maps may overlap too little to decide: the best transform ({} inliers) is not significant, and another that fits three transmitters puts only {} user transmitters inside the prior's area and {} prior transmitters inside the user's (expected false alarms even if all agreed {:.2e} > {:.0e})",
-                result.inliers,
-                small.user_overlap,
-                small.prior_overlap,
-                small.false_alarms,
-                cfg.max_false_alarms
+                "the maps may overlap too little to decide: the best transform ({} inliers) is not significant, and another that fits three transmitters puts only {} user transmitters inside the prior's area and {} prior transmitters inside the user's ({} needed to decide)",
+                result.inliers, small.user_overlap, small.prior_overlap, cfg.min_inliers
             ),
         )
     } else if h.pairs.len() < cfg.min_inliers {

@@ -49,6 +49,48 @@ pub(super) fn mirror_excess_chi2(h: &Hypothesis, u: &[Cand], p: &[Cand]) -> f64 
     pair_chi2(&mirror, &h.pairs, u, p, true) - pair_chi2(&h.iso, &h.pairs, u, p, false)
 }
 
+/// Where the user's track went and where the prior saw each of its candidates, for the prior
+/// side of [`false_alarms`].
+pub(super) struct Walked {
+    /// centres of the cells the user's map has visibility counts in (agent frame)
+    cells: Vec<Point2<f64>>,
+    /// the prior's grid
+    prior_grid: HexGrid,
+    /// per prior candidate: the cells from which the prior saw it more often than not
+    seen: Vec<Vec<HexCell>>,
+}
+
+impl Walked {
+    pub(super) fn new(user: &TransmitterMap, prior: &TransmitterMap, p: &[Cand]) -> Walked {
+        let user_grid = user.grid();
+        let cells: std::collections::BTreeSet<HexCell> = user
+            .transmitters()
+            .iter()
+            .flat_map(|t| {
+                t.visibility
+                    .iter()
+                    .filter(|(_, b)| b.alpha + b.beta > 0.0)
+                    .map(|(c, _)| *c)
+            })
+            .collect();
+        Walked {
+            cells: cells.into_iter().map(|c| user_grid.centre(c)).collect(),
+            prior_grid: prior.grid(),
+            seen: p
+                .iter()
+                .map(|c| {
+                    prior.transmitters()[c.index]
+                        .visibility
+                        .iter()
+                        .filter(|(_, b)| b.alpha > b.beta)
+                        .map(|(cell, _)| *cell)
+                        .collect()
+                })
+                .collect(),
+        }
+    }
+}
+
 /// One agreeing pair as evidence for the false-alarm count: chance partners per m² (ρ·f), the
 /// area of its uncertainty ellipse (m²) and where it sits (for the rotation annulus).
 struct Agreement {
@@ -153,12 +195,20 @@ fn side_false_alarms(agree: &[Agreement], trials: usize, n_from: usize, n_to: us
 /// false-alarm count is `U·(U − 1)·P · (n − 2) · q′ · min_j P(X ≥ j)` (the factor n − 2 pays for
 /// choosing j).
 ///
-/// The same count seen from the prior map (the user candidates uniform over the user's box,
-/// the trials every prior candidate the inverse transform puts inside it) makes the prior
-/// transmitters where the user's map has transmitters, but no counterpart, count against the
-/// hypothesis too. The hypothesis must be significant under both null models: the larger of the
-/// two counts is returned.
-pub(super) fn false_alarms(h: &Hypothesis, u: &[Cand], p: &[Cand], cfg: &MatchConfig) -> f64 {
+/// The same count seen from the prior map (the user candidates uniform over the user's box)
+/// makes the prior transmitters the user should have met, but did not map, count against the
+/// hypothesis too. Where both maps say where they were seen (visibility cells), those are the
+/// prior transmitters the prior saw from a cell the user's track passed through (under the
+/// transform); otherwise the prior candidates the inverse transform puts inside the user's box.
+/// The hypothesis must be significant under both null models: the larger of the two counts is
+/// returned.
+pub(super) fn false_alarms(
+    h: &Hypothesis,
+    u: &[Cand],
+    p: &[Cand],
+    walked: &Walked,
+    cfg: &MatchConfig,
+) -> f64 {
     if h.pairs.len() <= 2 {
         return f64::INFINITY;
     }
@@ -169,9 +219,21 @@ pub(super) fn false_alarms(h: &Hypothesis, u: &[Cand], p: &[Cand], cfg: &MatchCo
         .iter()
         .filter(|c| prior_region.contains(&(h.iso * c.p)))
         .count();
+    let moved: std::collections::HashSet<HexCell> = walked
+        .cells
+        .iter()
+        .map(|c| walked.prior_grid.cell_of(&(h.iso * c)))
+        .collect();
     let prior_trials = p
         .iter()
-        .filter(|c| user_region.contains(&(inverse * c.p)))
+        .zip(&walked.seen)
+        .filter(|(c, seen)| {
+            if moved.is_empty() || seen.is_empty() {
+                user_region.contains(&(inverse * c.p))
+            } else {
+                seen.iter().any(|cell| moved.contains(cell))
+            }
+        })
         .count();
     let agree = |from_user: bool| -> Vec<Agreement> {
         h.pairs
@@ -223,7 +285,6 @@ pub(super) struct Overlap<'a> {
     u_evidence: Vec<(f64, f64)>,
     p_evidence: Vec<(f64, f64)>,
     min_inliers: usize,
-    max_false_alarms: f64,
 }
 
 impl<'a> Overlap<'a> {
@@ -253,7 +314,6 @@ impl<'a> Overlap<'a> {
             user_region,
             prior_region,
             min_inliers: cfg.min_inliers.max(3),
-            max_false_alarms: cfg.max_false_alarms,
         }
     }
 
@@ -310,10 +370,24 @@ impl<'a> Overlap<'a> {
         }
     }
 
-    /// The best case under `iso` when it cannot decide: too few candidates overlap, or even
-    /// their perfect agreement would not be significant.
-    pub(super) fn undecidable(&self, iso: Option<&Isometry2<f64>>) -> Option<BestCase> {
-        let best = self.best_case(iso);
-        (best.false_alarms > self.max_false_alarms).then_some(best)
+    /// The overlap under `iso` when fewer candidates than the test's minimum number of inliers
+    /// overlap on either side (counts only: cheap enough for every consistent triple).
+    pub(super) fn too_small(&self, iso: &Isometry2<f64>) -> Option<BestCase> {
+        let inverse = iso.inverse();
+        let user_overlap = self
+            .u
+            .iter()
+            .filter(|c| self.prior_region.contains(&(iso * c.p)))
+            .count();
+        let prior_overlap = self
+            .p
+            .iter()
+            .filter(|c| self.user_region.contains(&(inverse * c.p)))
+            .count();
+        (user_overlap.min(prior_overlap) < self.min_inliers).then_some(BestCase {
+            user_overlap,
+            prior_overlap,
+            false_alarms: f64::INFINITY,
+        })
     }
 }
