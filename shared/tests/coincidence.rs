@@ -94,7 +94,7 @@ fn maps_that_share_too_little_are_undecided_and_never_merged() {
         assert_eq!(c.get("accepted"), None, "{c:?}");
     }
     assert_eq!(small_user.len(), 1, "{small_user:?}");
-    assert!(small_user.get("undecided").is_some(), "{small_user:?}");
+    assert!(small_user.contains_key("undecided"), "{small_user:?}");
     // a refusal of a large map says why: most dense unrelated maps over one area are
     // contradicted under every transform found (rejected); the rest might overlap a little
     let n: usize = unrelated.values().sum();
