@@ -197,9 +197,10 @@ fn side_false_alarms(agree: &[Agreement], trials: usize, n_from: usize, n_to: us
 ///
 /// The same count seen from the prior map (the user candidates uniform over the user's box)
 /// makes the prior transmitters the user should have met, but did not map, count against the
-/// hypothesis too. Where both maps say where they were seen (visibility cells), those are the
-/// prior transmitters the prior saw from a cell the user's track passed through (under the
-/// transform); otherwise the prior candidates the inverse transform puts inside the user's box.
+/// hypothesis too: where both maps say where they were seen (visibility cells), the prior
+/// transmitters the prior saw from a cell the user's track passed through (under the
+/// transform). Without visibility the maps do not say where the user went — a partial map early
+/// in a walk covers less than its transmitters' extent — and nothing is counted there.
 /// The hypothesis must be significant under both null models: the larger of the two counts is
 /// returned.
 pub(super) fn false_alarms(
@@ -214,7 +215,6 @@ pub(super) fn false_alarms(
     }
     let margin = cfg.inlier_threshold_m;
     let (prior_region, user_region) = (Region::of(p, margin), Region::of(u, margin));
-    let inverse = h.iso.inverse();
     let user_trials = u
         .iter()
         .filter(|c| prior_region.contains(&(h.iso * c.p)))
@@ -227,13 +227,7 @@ pub(super) fn false_alarms(
     let prior_trials = p
         .iter()
         .zip(&walked.seen)
-        .filter(|(c, seen)| {
-            if moved.is_empty() || seen.is_empty() {
-                user_region.contains(&(inverse * c.p))
-            } else {
-                seen.iter().any(|cell| moved.contains(cell))
-            }
-        })
+        .filter(|(_, seen)| seen.iter().any(|cell| moved.contains(cell)))
         .count();
     let agree = |from_user: bool| -> Vec<Agreement> {
         h.pairs
