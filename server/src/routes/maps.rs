@@ -73,6 +73,15 @@ pub async fn put_map(
     let settings: CreateMap = if body.iter().all(u8::is_ascii_whitespace) {
         CreateMap::default()
     } else {
+        // an object (or null): serde would also read a struct from a JSON array
+        if !body.trim_ascii_start().starts_with(b"{")
+            && !body.trim_ascii_start().starts_with(b"null")
+        {
+            return Err(ApiError::Invalid {
+                field: String::new(),
+                detail: "the body must be a JSON object (or null)".into(),
+            });
+        }
         parse_json::<Option<CreateMap>>(&body)?.unwrap_or_default()
     };
     let (row, created) = app
