@@ -74,9 +74,8 @@ pub async fn put_map(
         CreateMap::default()
     } else {
         // an object (or null): serde would also read a struct from a JSON array
-        if !body.trim_ascii_start().starts_with(b"{")
-            && !body.trim_ascii_start().starts_with(b"null")
-        {
+        let start = body.trim_ascii_start();
+        if !start.starts_with(b"{") && !start.starts_with(b"null") {
             return Err(ApiError::Invalid {
                 field: String::new(),
                 detail: "the body must be a JSON object (or null)".into(),
