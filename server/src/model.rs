@@ -56,7 +56,13 @@ impl IdempotencyKey {
             detail: "Idempotency-Key must be visible ASCII".into(),
         })?;
         // draft-ietf-httpapi-idempotency-key-header: a (quoted) string; accept both forms
-        let s = s.trim().trim_matches('"');
+        let s = s.trim();
+        // a quoted key is unwrapped only when something is left inside the quotes: `"` and
+        // `""` are keys of their own
+        let s = match s.strip_prefix('"').and_then(|s| s.strip_suffix('"')) {
+            Some(inner) if !inner.is_empty() => inner,
+            _ => s,
+        };
         if s.is_empty() || s.len() > 255 || !s.bytes().all(|b| b.is_ascii_graphic()) {
             return Err(ApiError::BadRequest {
                 detail: "Idempotency-Key must be 1–255 visible ASCII characters".into(),
@@ -97,6 +103,31 @@ mod tests {
             "a\0",
         ] {
             assert!(MapName::parse(bad).is_err(), "{bad}");
+        }
+    }
+
+    fn key(v: &str) -> Result<IdempotencyKey, ApiError> {
+        let mut h = axum::http::HeaderMap::new();
+        h.insert(IdempotencyKey::HEADER, v.parse().unwrap());
+        IdempotencyKey::from_headers(&h)
+    }
+
+    #[test]
+    fn idempotency_keys_of_every_visible_ascii_form() {
+        // every value the published pattern `^[!-~]{1,255}$` allows is a key
+        for (raw, stored) in [
+            ("k1", "k1"),
+            ("\"k1\"", "k1"),
+            ("\"", "\""),
+            ("\"\"", "\"\""),
+            ("\"\"\"", "\""),
+            ("~", "~"),
+        ] {
+            assert_eq!(key(raw).unwrap().as_str(), stored, "{raw}");
+        }
+        assert!(key(&"k".repeat(255)).is_ok());
+        for bad in ["", " ", "a b", &"k".repeat(256)] {
+            assert!(key(bad).is_err(), "{bad:?}");
         }
     }
 }
