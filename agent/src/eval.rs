@@ -35,19 +35,22 @@ pub struct TruthCols {
     pub rmse_m: f64,
     /// ‖p − p̂‖ of the weighted-mean estimate p̂
     pub err_m: f64,
+    /// normalized estimation error squared of the truth under the particle cloud
+    /// ([`crate::filter::Filter::position_nees`]); ≤ 5.991 inside the 95 % ellipse
+    pub nees: f64,
 }
 
 pub fn track_csv(rows: &[TrackRow]) -> String {
     let mut s = String::from(
-        "t,x,y,traveled_m,true_x,true_y,mae_m,rmse_m,err_m,ess,transmitters,components,log_evidence,model\n",
+        "t,x,y,traveled_m,true_x,true_y,mae_m,rmse_m,err_m,nees,ess,transmitters,components,log_evidence,model\n",
     );
     for r in rows {
         let truth = match r.truth {
             Some(c) => format!(
-                "{},{},{},{},{}",
-                c.true_x, c.true_y, c.mae_m, c.rmse_m, c.err_m
+                "{},{},{},{},{},{}",
+                c.true_x, c.true_y, c.mae_m, c.rmse_m, c.err_m, c.nees
             ),
-            None => ",,,,".to_string(),
+            None => ",,,,,".to_string(),
         };
         let model = match r.with_prior {
             Some(true) => "prior",

@@ -32,6 +32,9 @@ pub struct RunSummary {
     pub ate_m: f64,
     /// the same for dead reckoning, for logs that carry speed
     pub dead_reckoning_ate_m: Option<f64>,
+    /// share of snapshots whose true position lies inside the 95 % ellipse of the particle
+    /// cloud (NEES ≤ 5.991): near 0.95 when the filter's reported uncertainty is honest
+    pub coverage95: f64,
     /// with a prior map: log time (s) of the first accepted match, if any
     pub prior_matched_at_s: Option<f64>,
     /// with a prior map: particle-weighted number of transmitters taken over from it
@@ -82,10 +85,26 @@ pub fn summarize(out: &RunOutput, truth: &GroundTruth, log: &MeasurementLog) -> 
         dead_reckoning_final_m: dr_final,
         ate_m: track_ate(&out.rows, truth),
         dead_reckoning_ate_m: dr_ate,
+        coverage95: coverage95(&out.rows),
         prior_matched_at_s: out.matches.iter().find(|m| m.accepted).map(|m| m.t),
         prior_transmitters_used: out.had_prior.then(|| out.filter.prior_transmitters_used()),
     }
 }
+
+/// Share of rows with truth whose NEES is within the χ²₂ 95 % quantile (NaN without truth).
+pub fn coverage95(rows: &[crate::eval::TrackRow]) -> f64 {
+    let nees: Vec<f64> = rows
+        .iter()
+        .filter_map(|r| r.truth.map(|t| t.nees))
+        .collect();
+    if nees.is_empty() {
+        return f64::NAN;
+    }
+    nees.iter().filter(|&&e| e <= CHI2_2_95).count() as f64 / nees.len() as f64
+}
+
+/// The 95 % quantile of χ² with 2 degrees of freedom, `−2 ln 0.05`.
+pub const CHI2_2_95: f64 = 5.991_464_547_107_979;
 
 fn truth_points(truth: &GroundTruth) -> Vec<Point2<f64>> {
     truth.poses.iter().map(|p| Point2::new(p.x, p.y)).collect()
@@ -200,8 +219,9 @@ pub fn print_summary(out: &RunOutput, truth: Option<&GroundTruth>, log: &Measure
             }
         }
         println!(
-            "absolute trajectory error (after rigid alignment): {:.2} m",
-            s.ate_m
+            "absolute trajectory error (after rigid alignment): {:.2} m; truth inside the 95 % ellipse in {:.1} % of snapshots",
+            s.ate_m,
+            100.0 * s.coverage95
         );
         if let (Some(m), Some(f)) = (s.dead_reckoning_mean_m, s.dead_reckoning_final_m) {
             println!(

@@ -92,6 +92,7 @@ pub fn run_filter_with_prior(
                 mae_m,
                 rmse_m,
                 err_m: (stats.x - p.x).hypot(stats.y - p.y),
+                nees: filter.position_nees(p.x, p.y),
             }
         });
         rows.push(TrackRow {

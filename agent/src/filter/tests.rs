@@ -1087,3 +1087,29 @@ fn the_fallback_reports_the_more_likely_filter_and_keeps_a_correct_prior() {
         "mean MAE reported {reported:.3} m, alone {on_its_own:.3} m (summed over the seeds)"
     );
 }
+
+#[test]
+fn position_nees_measures_the_truth_against_the_clouds_ellipse() {
+    // Four equally weighted particles at (±1, 0) and (0, ±2): mean at the origin, covariance
+    // diag(0.5, 2). A true position at (1, 2) lies at NEES 1²/0.5 + 2²/2 = 4 (inside the
+    // 95 % ellipse, χ²₂ 5.99); at (2, 2) at 10 (outside); a cloud collapsed to one point is
+    // infinitely far from any other position.
+    let mut f = Filter::new(cfg(1, 4), true);
+    for (p, (x, y)) in
+        f.particles_mut()
+            .iter_mut()
+            .zip([(1.0, 0.0), (-1.0, 0.0), (0.0, 2.0), (0.0, -2.0)])
+    {
+        p.pose.x = x;
+        p.pose.y = y;
+    }
+    assert!((f.position_nees(1.0, 2.0) - 4.0).abs() < 1e-12);
+    assert!((f.position_nees(2.0, 2.0) - 10.0).abs() < 1e-12);
+    assert_eq!(f.position_nees(0.0, 0.0), 0.0);
+    for p in f.particles_mut() {
+        p.pose.x = 3.0;
+        p.pose.y = 3.0;
+    }
+    assert_eq!(f.position_nees(3.0, 3.0), 0.0);
+    assert!(f.position_nees(3.0, 3.1).is_infinite());
+}
