@@ -125,6 +125,10 @@ pub struct PriorConfig {
     pub match_score: MatchScore,
 }
 
+/// The outlier probability of a sensor that does not state one: real channel estimators
+/// swap paths and misread identities now and then.
+pub const DEFAULT_OUTLIER_PROBABILITY: f64 = 0.05;
+
 impl Default for RunConfig {
     fn default() -> Self {
         let f = FilterConfig::default();
@@ -144,7 +148,8 @@ impl Default for RunConfig {
                 aoa_floor_rad: f.noise.aoa_floor_rad,
                 aoa_at_0db_rad: f.noise.aoa_at_0db_rad,
                 line_of_sight_only: false,
-                outlier_probability: f.outlier_probability,
+                // a log that says nothing of gross errors is taken to have them
+                outlier_probability: DEFAULT_OUTLIER_PROBABILITY,
                 outlier_density: f.outlier_density,
             },
             association: AssociationConfig {
@@ -531,6 +536,9 @@ pub fn sensor_layer(p: &SensorProfile) -> Value {
     if let Some(v) = p.new_transmitter_density {
         set("association.p0", json!(v));
     }
+    if let Some(v) = p.outlier_probability {
+        set("measurement.outlier_probability", json!(v));
+    }
     if let Some(v) = p.gate_chi2 {
         set("association.gate_chi2", json!(v));
     }
@@ -745,11 +753,38 @@ mod tests {
 
     #[test]
     fn the_defaults_are_the_filters_defaults() {
+        // but for gross errors, which a log that says nothing is taken to have
         let r = resolve(&Layers::default()).unwrap();
         assert_eq!(r.config, RunConfig::default());
-        assert_eq!(r.config.filter_config(1, 0.0), FilterConfig::default());
+        assert_eq!(
+            r.config.filter_config(1, 0.0),
+            FilterConfig {
+                outlier_probability: DEFAULT_OUTLIER_PROBABILITY,
+                ..FilterConfig::default()
+            }
+        );
         assert!(r.sources.values().all(|s| *s == Source::Default));
         assert!(r.sources.contains_key("prior.match_score"));
+    }
+
+    #[test]
+    fn a_profile_that_states_no_gross_errors_turns_the_outlier_term_off() {
+        let profile = SensorProfile {
+            outlier_probability: Some(0.0),
+            ..Default::default()
+        };
+        let r = resolve(&Layers {
+            sensor: Some(&profile),
+            ..Default::default()
+        })
+        .unwrap();
+        assert_eq!(r.config.measurement.outlier_probability, 0.0);
+        assert_eq!(r.sources["measurement.outlier_probability"], Source::Sensor);
+        let bad = SensorProfile {
+            outlier_probability: Some(1.0),
+            ..Default::default()
+        };
+        assert!(bad.validate().unwrap_err().contains("outlier_probability"));
     }
 
     #[test]

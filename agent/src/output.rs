@@ -35,6 +35,8 @@ pub struct RunSummary {
     /// share of snapshots whose true position lies inside the 95 % ellipse of the particle
     /// cloud (NEES ≤ 5.991): near 0.95 when the filter's reported uncertainty is honest
     pub coverage95: f64,
+    /// detections of bound tracks decided to be gross errors (`measurement.outlier_probability`)
+    pub outlier_detections: usize,
     /// with a prior map: log time (s) of the first accepted match, if any
     pub prior_matched_at_s: Option<f64>,
     /// with a prior map: particle-weighted number of transmitters taken over from it
@@ -86,6 +88,7 @@ pub fn summarize(out: &RunOutput, truth: &GroundTruth, log: &MeasurementLog) -> 
         ate_m: track_ate(&out.rows, truth),
         dead_reckoning_ate_m: dr_ate,
         coverage95: coverage95(&out.rows),
+        outlier_detections: out.filter.outlier_detections(),
         prior_matched_at_s: out.matches.iter().find(|m| m.accepted).map(|m| m.t),
         prior_transmitters_used: out.had_prior.then(|| out.filter.prior_transmitters_used()),
     }

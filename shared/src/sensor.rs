@@ -81,6 +81,11 @@ pub struct SensorProfile {
     /// Gaussian
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub gate_chi2: Option<f64>,
+    /// probability that a detection of a known transmitter is a gross error (a path swapped
+    /// for another, a misread identity) rather than drawn from the stated noise laws; a
+    /// sensor that states nothing is taken to have them
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outlier_probability: Option<f64>,
 }
 
 impl SensorProfile {
@@ -120,6 +125,13 @@ impl SensorProfile {
             positive,
         ));
         checks.push(("sensor.gate_chi2", self.gate_chi2, positive));
+        if let Some(v) = self.outlier_probability
+            && !(0.0..1.0).contains(&v)
+        {
+            return Err(format!(
+                "sensor.outlier_probability must be in [0, 1), got {v}"
+            ));
+        }
         for (field, v, strict) in checks {
             let Some(v) = v else { continue };
             let ok = v.is_finite() && if strict { v > 0.0 } else { v >= 0.0 };

@@ -121,9 +121,9 @@ pub struct FilterConfig {
     /// likelihood of "no association" (density in 1/(m·rad); ToA-only: 1/m) — p₀ of Gentner et al. 2016 §5
     pub association_p0: f64,
     /// probability ε that a detection of a known transmitter is an outlier (a gross error of
-    /// the channel estimator or the detector): the likelihood of a bound track's measurement
-    /// is `(1 − ε)·Σ_c w_c N(z; ẑ_c, P_zz,c) + ε·λ`, and the transmitter is not updated when
-    /// the outlier explains the measurement better; 0 = every detection is taken as it is
+    /// the channel estimator or the tracker), decided once per detection over the particle
+    /// population (`Filter::weigh_detections`): an outlier weights no particle and moves no
+    /// transmitter; 0 = every detection is taken as it is
     pub outlier_probability: f64,
     /// density λ of an outlier over the measurement space (1/(m·rad); ToA-only: 1/m)
     pub outlier_density: f64,

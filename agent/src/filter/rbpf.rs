@@ -9,7 +9,7 @@
 //! unchanged transmitters through `Arc` (copy-on-write with `Arc::make_mut`).
 use super::config::FilterConfig;
 use super::model::Pose;
-use super::particle::{Identity, Particle};
+use super::particle::{Identity, Particle, TxState};
 use super::prior_map::Prior;
 use super::update::{Meas, log_sum_exp, update_mixture};
 use super::visibility::Visibility;
@@ -57,7 +57,14 @@ pub struct Filter {
     pub(super) log_evidence: f64,
     /// the prior map in the agent frame, once matched
     pub(super) prior: Option<Arc<Prior>>,
+    /// detections of bound tracks decided to be gross errors so far
+    pub(super) outliers: usize,
 }
+
+/// A bound track's detection as one particle saw it: the track, the log likelihood, the
+/// transmitter's slot and the transmitter before the update (restored if the detection
+/// turns out to be a gross error).
+type Detection = (u64, f64, u32, Arc<TxState>);
 
 impl Filter {
     /// A filter whose particles all start at the local origin, heading +x, at the configured
@@ -99,6 +106,7 @@ impl Filter {
             last_mean: Point2::origin(),
             log_evidence: 0.0,
             prior: None,
+            outliers: 0,
         }
     }
     /// whether the log's measurements carry an angle of arrival
@@ -125,6 +133,11 @@ impl Filter {
 
     pub fn visibility(&self) -> &Visibility {
         &self.visibility
+    }
+
+    /// Detections of bound tracks decided to be gross errors so far.
+    pub fn outlier_detections(&self) -> usize {
+        self.outliers
     }
 
     /// ln p(z₁..z_t) so far (see `StepStats::log_evidence`).
@@ -267,7 +280,15 @@ impl Filter {
         let rngs: Vec<ChaCha8Rng> = (0..self.particles.len())
             .map(|i| self.particle_rng(i))
             .collect();
-        {
+        // with an outlier probability, bound tracks' detections weight the particles only
+        // once the population has decided they are no gross errors
+        let robust = self.cfg.outlier_probability > 0.0;
+        let w_before = if robust {
+            self.weights_given(before)
+        } else {
+            Vec::new()
+        };
+        let detections: Vec<Vec<Detection>> = {
             let cfg = &self.cfg;
             let vis = &self.visibility;
             let prior = self.prior.as_deref();
@@ -276,7 +297,8 @@ impl Filter {
             self.particles
                 .par_iter_mut()
                 .zip(rngs)
-                .for_each(|(p, mut rng)| {
+                .map(|(p, mut rng)| {
+                    let mut detections = Vec::new();
                     p.predict(cfg, gyro, speed, dt, &mut rng);
                     p.bound.retain(|(t, _)| current.contains(t));
                     if !p.pending.is_empty() {
@@ -285,9 +307,16 @@ impl Filter {
                     let mut updated = vec![false; p.txs.len()];
                     for (track, m, identity) in &meas {
                         if let Some(&(_, idx)) = p.bound.iter().find(|(t, _)| t == track) {
+                            // a track whose association is still open carries its evidence
+                            // into that decision and weights at once
+                            let saved = (robust && !p.pending.iter().any(|pd| pd.track == *track))
+                                .then(|| Arc::clone(&p.txs[idx as usize]));
                             let tx = Arc::make_mut(&mut p.txs[idx as usize]);
                             let ll = update_mixture(&mut tx.comps, m, &p.pose, cfg, merge_now);
-                            p.log_w += ll;
+                            match saved {
+                                Some(saved) => detections.push((*track, ll, idx, saved)),
+                                None => p.log_w += ll,
+                            }
                             if !updated[idx as usize] {
                                 tx.reliability_m += p.pose.speed.abs() * dt;
                                 updated[idx as usize] = true;
@@ -319,7 +348,12 @@ impl Filter {
                     if !p.pending.is_empty() {
                         p.resolve_pending(cfg, &current, &mut rng, |pd| pd.seen >= pd.window);
                     }
-                });
+                    detections
+                })
+                .collect()
+        };
+        if robust {
+            self.weigh_detections(detections, &w_before);
         }
         // Normalize, estimate, resample.
         let after = log_sum_exp(self.particles.iter().map(|p| p.log_w));
@@ -376,6 +410,45 @@ impl Filter {
             traveled_m: self.traveled,
             log_evidence: self.log_evidence,
         }
+    }
+
+    /// The gross-error decision of every bound track's detection, taken once for the whole
+    /// population: whether a detection is an outlier is a property of the detection, shared
+    /// by every hypothesis of the user's track, not of each particle. It is one when
+    /// `ε·λ > (1 − ε)·Σᵢ wᵢ·Lᵢ`, the outlier's density against the population's predictive
+    /// likelihood (`wᵢ` the weights before this snapshot, over the particles that hold the
+    /// track); it then weights no particle and every particle's transmitter is restored to
+    /// its state before the update. Deciding per particle instead, `(1 − ε)·Lᵢ + ε·λ`, excuses
+    /// exactly the particles that are wrong and removes the pull back to the truth.
+    fn weigh_detections(&mut self, detections: Vec<Vec<Detection>>, w_before: &[f64]) {
+        let eps = self.cfg.outlier_probability;
+        let ln_outlier = (eps * self.cfg.outlier_density).ln() - (1.0 - eps).ln();
+        let mut predictive: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
+        for (&w, ds) in w_before.iter().zip(&detections) {
+            if w > 0.0 {
+                for (track, ll, _, _) in ds {
+                    predictive.entry(*track).or_default().push(w.ln() + ll);
+                }
+            }
+        }
+        let outliers: BTreeSet<u64> = predictive
+            .into_iter()
+            .filter(|(_, v)| ln_outlier > log_sum_exp(v.iter().copied()))
+            .map(|(track, _)| track)
+            .collect();
+        self.particles
+            .par_iter_mut()
+            .zip(detections)
+            .for_each(|(p, ds)| {
+                for (track, ll, slot, saved) in ds {
+                    if outliers.contains(&track) {
+                        p.txs[slot as usize] = saved;
+                    } else {
+                        p.log_w += ll;
+                    }
+                }
+            });
+        self.outliers += outliers.len();
     }
 
     /// Visibility bookkeeping along the mean track: an identity is "seen" when the track the

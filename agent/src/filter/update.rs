@@ -1,7 +1,7 @@
 //! The measurement update of one transmitter's Gaussian mixture: every component by the
-//! square-root cubature Kalman filter (Gentner et al. 2016 eq. 45–46), the optional outlier
-//! term, pruning and merging of components (§4.3), and the product of two mixtures that fuses a
-//! prior-map transmitter into an own one.
+//! square-root cubature Kalman filter (Gentner et al. 2016 eq. 45–46), pruning and merging
+//! of components (§4.3), and the product of two mixtures that fuses a prior-map transmitter
+//! into an own one.
 
 use super::config::FilterConfig;
 use super::model::{Comp, Pose, h_toa, h_toa_aoa, residual_toa, residual_toa_aoa};
@@ -104,34 +104,10 @@ pub(super) fn log_sum_exp(v: impl Iterator<Item = f64> + Clone) -> f64 {
     max + v.map(|x| (x - max).exp()).sum::<f64>().ln()
 }
 
-/// Updates a bound transmitter's mixture with one measurement and returns the log likelihood
-/// of the measurement: ln Σ_c w_c N(z; ẑ_c, P_zz,c) (eq. 45–46), or with an outlier
-/// probability ε > 0 the robust `ln((1 − ε)·L + ε·λ)`, where the mixture keeps its prior state
-/// when the outlier term is the larger (a gross error then neither moves the transmitter nor
-/// leaves only the particles that happen to fit it).
-pub(super) fn update_mixture(
-    comps: &mut Vec<Comp>,
-    meas: &Meas,
-    pose: &Pose,
-    cfg: &FilterConfig,
-    merge_now: bool,
-) -> f64 {
-    let eps = cfg.outlier_probability;
-    if eps <= 0.0 {
-        return update_mixture_gaussian(comps, meas, pose, cfg, merge_now);
-    }
-    let prior = comps.clone();
-    let ln_in = (1.0 - eps).ln() + update_mixture_gaussian(comps, meas, pose, cfg, merge_now);
-    let ln_out = (eps * cfg.outlier_density).ln();
-    if ln_out > ln_in {
-        *comps = prior;
-    }
-    log_sum_exp([ln_in, ln_out].into_iter())
-}
-
 /// Updates every component of a mixture with one measurement (eq. 46) and returns the
-/// log marginal likelihood ln Σ_c w_c N(z; ẑ_c, P_zz,c) (the factor of eq. 45).
-pub(super) fn update_mixture_gaussian(
+/// log marginal likelihood ln Σ_c w_c N(z; ẑ_c, P_zz,c) (the factor of eq. 45). Gross errors
+/// are decided once per detection over the particle population (`Filter::weigh_detections`).
+pub(super) fn update_mixture(
     comps: &mut Vec<Comp>,
     meas: &Meas,
     pose: &Pose,

@@ -131,6 +131,8 @@ impl Scenario {
                 floor: PROFILE_FLOOR_MARGIN * e.aoa_floor_rad,
                 at_0db: round_up_2_digits(crlb_a),
             }),
+            // the simulated estimator's errors are the noise laws alone
+            outlier_probability: Some(0.0),
             ..Default::default()
         }
     }
