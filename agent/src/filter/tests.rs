@@ -1113,3 +1113,72 @@ fn position_nees_measures_the_truth_against_the_clouds_ellipse() {
     assert_eq!(f.position_nees(3.0, 3.0), 0.0);
     assert!(f.position_nees(3.0, 3.1).is_infinite());
 }
+
+#[test]
+fn the_motion_model_alone_reports_an_honest_uncertainty() {
+    // A walk whose odometry errors are drawn from exactly the filter's motion model (heading
+    // random walk, speed measurement noise), with no radio at all: the particle cloud then
+    // is the true posterior, and the truth must lie inside its 95 % ellipse in about 95 % of
+    // the snapshots (`coverage95` of summary.json). One walk's snapshots are strongly
+    // correlated (its error is one random walk), so the share is pooled over 100 short walks
+    // (200 particles each); its spread over such sets is about ±0.01.
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+    let c = FilterConfig::default();
+    let dt = 0.1;
+    let mut coverage = Vec::new();
+    for seed in 1..=100u64 {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1000 + seed);
+        let n = Normal::new(0.0, 1.0).unwrap();
+        let (mut x, mut y, mut h) = (0.0f64, 0.0f64, 0.0f64);
+        let mut log = String::from(
+            r#"{"format":"echomap.log.v1","snapshot_rate_hz":10.0,"aoa":true,"speed":true}"#,
+        );
+        log.push('\n');
+        let mut poses = Vec::new();
+        for k in 0..200 {
+            let t = k as f64 * dt;
+            let (gyro, v_meas, v) = if k == 0 {
+                (0.0, 1.5, 1.5)
+            } else {
+                // a gentle slalom; the true heading turns by the gyro's rate plus the noise
+                let rate = 0.3 * (0.05 * t).sin();
+                let sigma = (c.heading_noise_rad_per_sqrt_s.powi(2) * dt
+                    + c.heading_noise_rad_per_sqrt_rad.powi(2) * (rate * dt).abs())
+                .sqrt();
+                let h_new = h + rate * dt + sigma * n.sample(&mut rng);
+                let v = 1.5;
+                let h_mid = h + 0.5 * (h_new - h);
+                x += v * dt * h_mid.cos();
+                y += v * dt * h_mid.sin();
+                h = h_new;
+                (
+                    rate,
+                    v + c.speed_measurement_std_mps * n.sample(&mut rng),
+                    v,
+                )
+            };
+            log.push_str(&format!(
+                r#"{{"t":{t},"gyro":{gyro},"speed":{v_meas},"components":[]}}"#
+            ));
+            log.push('\n');
+            poses.push(format!(
+                r#"{{"t":{t},"x":{x},"y":{y},"heading_rad":{h},"speed_mps":{v}}}"#
+            ));
+        }
+        let truth = format!(
+            r#"{{"format":"echomap.truth.v1","world_from_local":{{"angle_rad":0.0,"translation":[0.0,0.0]}},"poses":[{}],"transmitters":[]}}"#,
+            poses.join(",")
+        );
+        let log = echomap_shared::log::MeasurementLog::parse(&log).unwrap();
+        let truth = echomap_shared::log::GroundTruth::parse(&truth).unwrap();
+        let out = run_filter(&log, Some(&truth), cfg(seed, 200), false).unwrap();
+        coverage.push(crate::output::coverage95(&out.rows));
+    }
+    let mean = coverage.iter().sum::<f64>() / coverage.len() as f64;
+    assert!(
+        (0.90..=0.99).contains(&mean),
+        "coverage {mean}: {coverage:?}"
+    );
+    eprintln!("motion-only coverage over 100 walks: {mean:.3}");
+}
