@@ -61,10 +61,9 @@ pub struct Filter {
     pub(super) outliers: usize,
 }
 
-/// A bound track's detection as one particle saw it: the track, the log likelihood, the
-/// transmitter's slot and the transmitter before the update (restored if the detection
-/// turns out to be a gross error).
-type Detection = (u64, f64, u32, Arc<TxState>);
+/// A bound track's detection as one particle saw it: the track, the log likelihood and the
+/// transmitter before the update (restored if the detection turns out to be a gross error).
+type Detection = (u64, f64, Arc<TxState>);
 
 impl Filter {
     /// A filter whose particles all start at the local origin, heading +x, at the configured
@@ -314,7 +313,7 @@ impl Filter {
                             let tx = Arc::make_mut(&mut p.txs[idx as usize]);
                             let ll = update_mixture(&mut tx.comps, m, &p.pose, cfg, merge_now);
                             match saved {
-                                Some(saved) => detections.push((*track, ll, idx, saved)),
+                                Some(saved) => detections.push((*track, ll, saved)),
                                 None => p.log_w += ll,
                             }
                             if !updated[idx as usize] {
@@ -426,7 +425,7 @@ impl Filter {
         let mut predictive: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
         for (&w, ds) in w_before.iter().zip(&detections) {
             if w > 0.0 {
-                for (track, ll, _, _) in ds {
+                for (track, ll, _) in ds {
                     predictive.entry(*track).or_default().push(w.ln() + ll);
                 }
             }
@@ -440,9 +439,13 @@ impl Filter {
             .par_iter_mut()
             .zip(detections)
             .for_each(|(p, ds)| {
-                for (track, ll, slot, saved) in ds {
+                for (track, ll, saved) in ds {
                     if outliers.contains(&track) {
-                        p.txs[slot as usize] = saved;
+                        // the slot as bound now: an association decided later in the step
+                        // may have removed a slot before it
+                        if let Some(&(_, slot)) = p.bound.iter().find(|(t, _)| *t == track) {
+                            p.txs[slot as usize] = saved;
+                        }
                     } else {
                         p.log_w += ll;
                     }
