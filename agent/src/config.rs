@@ -123,6 +123,9 @@ pub struct PriorConfig {
     pub visibility_weight: f64,
     /// how a matching hypothesis's inliers are scored: `msac` or `likelihood`
     pub match_score: MatchScore,
+    /// use the prior map in the filter; false: a run with a server still fetches the prior
+    /// map and uploads its own, but runs as if alone (a control for what the map gives)
+    pub use_in_filter: bool,
 }
 
 /// The outlier probability of a sensor that does not state one: real channel estimators
@@ -171,6 +174,7 @@ impl Default for RunConfig {
                 fallback: false,
                 visibility_weight: p.matching.visibility_weight,
                 match_score: MatchScore::Msac,
+                use_in_filter: true,
             },
         }
     }

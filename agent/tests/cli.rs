@@ -497,3 +497,56 @@ fn match_and_merge_commands() {
     assert!(!st.status.success());
     assert!(!out2.exists());
 }
+
+/// `run --out DIR --log LOG --particles 100 --quiet --seed 3` plus `extra`; must succeed.
+fn run_ok(log: &Path, out: &Path, extra: &[&str]) {
+    let st = agent()
+        .args([
+            "run",
+            "--particles",
+            "100",
+            "--quiet",
+            "--seed",
+            "3",
+            "--log",
+        ])
+        .arg(log)
+        .arg("--out")
+        .arg(out)
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+}
+
+#[test]
+fn a_prior_the_configuration_says_not_to_use_leaves_the_run_as_if_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim1, sim2) = (dir.path().join("sim1"), dir.path().join("sim2"));
+    simulate_indoor("user01", 3, &sim1);
+    simulate_indoor("user02", 3, &sim2);
+    let first = dir.path().join("first");
+    run_ok(&sim1, &first, &[]);
+    let prior = first.join("map.json");
+    let prior = prior.to_str().unwrap();
+    let (alone, with, ignored) = (
+        dir.path().join("alone"),
+        dir.path().join("with"),
+        dir.path().join("ignored"),
+    );
+    run_ok(&sim2, &alone, &[]);
+    run_ok(&sim2, &with, &["--prior", prior]);
+    run_ok(
+        &sim2,
+        &ignored,
+        &["--prior", prior, "--set", "prior.use_in_filter=false"],
+    );
+    assert!(with.join("prior_matches.csv").exists(), "the prior is used");
+    assert!(!ignored.join("prior_matches.csv").exists());
+    let track = |d: &Path| std::fs::read_to_string(d.join("track.csv")).unwrap();
+    assert_eq!(track(&ignored), track(&alone), "as if alone");
+}

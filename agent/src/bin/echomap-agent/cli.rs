@@ -75,9 +75,6 @@ pub struct InputArgs {
     /// track to simulate with --scenario
     #[arg(long, default_value = "reference")]
     pub track: String,
-    /// single-antenna receiver (with --scenario)
-    #[arg(long)]
-    pub toa_only: bool,
 }
 
 /// The layers of the run configuration above the log's sensor profile.
@@ -153,9 +150,6 @@ pub struct RunArgs {
     /// label of this agent sent with the upload
     #[arg(long, default_value = "echomap-agent")]
     pub contributor: String,
-    /// with --server: fetch and upload, but do not use the prior map in the filter
-    #[arg(long)]
-    pub ignore_prior: bool,
     /// no progress bar
     #[arg(long)]
     pub quiet: bool,
@@ -493,13 +487,13 @@ fn load_input(a: &InputArgs, seed: u64) -> Result<(MeasurementLog, Option<Ground
     match (&a.log, &a.scenario) {
         (Some(dir), None) => files::read_log_dir(dir),
         (None, Some(s)) => {
-            let scenario = load_scenario(s, a.toa_only)?;
+            let scenario = load_scenario(s, false)?;
             let out = simulate(
                 &scenario,
                 &a.track,
                 SimOptions {
                     seed,
-                    toa_only: a.toa_only,
+                    toa_only: false,
                 },
             )?;
             Ok((out.log, Some(out.truth)))
@@ -513,7 +507,7 @@ fn input_profile(a: &InputArgs) -> Result<Option<SensorProfile>> {
     match (&a.log, &a.scenario) {
         (Some(dir), None) => Ok(files::read_log_dir(dir)?.0.header.sensor),
         (None, Some(s)) => {
-            let scenario: Scenario = load_scenario(s, a.toa_only)?;
+            let scenario: Scenario = load_scenario(s, false)?;
             Ok(Some(scenario.sensor_profile(scenario.receiver.aoa)))
         }
         (None, None) => Ok(None),
@@ -683,7 +677,7 @@ fn run_command(a: &RunArgs) -> Result<()> {
         (None, None) => None,
     };
     let tracker = prior
-        .filter(|p| !p.is_empty() && !a.ignore_prior)
+        .filter(|p| !p.is_empty() && cfg.prior.use_in_filter)
         .map(|p| PriorTracker::new(p, cfg.prior_settings(), a.seed))
         .transpose()?;
     let progress = !a.quiet;
