@@ -232,9 +232,20 @@ def main():
     ap.add_argument("--cell", type=float, default=1.0, help="grid cell (m) of the street map")
     ap.add_argument("--batch", type=int, default=100, help="receivers traced at once")
     ap.add_argument("--max-depth", type=int, default=3)
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="Dr.Jit worker threads (default 1: the same seed gives the same walk; 0: all cores)",
+    )
     a = ap.parse_args()
 
+    import drjit as dr
     import sionna.rt as rt
+
+    if a.threads:
+        # Dr.Jit's parallel ray tracing is not bit-reproducible; one thread is
+        dr.set_thread_count(a.threads)
 
     layout = np.random.default_rng([a.seed if a.layout is None else a.layout, 0])
     walk = np.random.default_rng([a.seed, 3])
@@ -257,7 +268,6 @@ def main():
         return c * d[0] - s * d[1], s * d[0] + c * d[1]
 
     os.makedirs(a.out, exist_ok=True)
-    noise = np.random.default_rng([a.seed, 1])  # measurement noise
     odometry = np.random.default_rng([a.seed, 2])
     prev = []  # (track, d, world aoa, key)
     next_id = 1
@@ -290,6 +300,9 @@ def main():
             taken.add(track)
             cur.append((track, d, phi, key, snr_db))
         prev = [(t, d, phi, key) for t, d, phi, key, _ in cur]
+        # measurement noise of each snapshot from its own stream, so that a path more or less
+        # elsewhere does not shift every later draw
+        noise = np.random.default_rng([a.seed, 1, k])
         comps = []
         for track, d, phi, _, snr_db in cur:
             snr = 10.0 ** (snr_db / 10.0)
