@@ -181,27 +181,8 @@ fn run_writes_map_track_and_plots() {
     let sim_dir = dir.path().join("sim");
     simulate_indoor("user01", 2, &sim_dir);
     let out = dir.path().join("run");
-    let st = agent()
-        .args([
-            "run",
-            "--particles",
-            "100",
-            "--quiet",
-            "--seed",
-            "2",
-            "--log",
-        ])
-        .arg(&sim_dir)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
-    assert!(String::from_utf8_lossy(&st.stdout).contains("MAE"));
+    let stdout = run_ok(&sim_dir, &out, 2, &[]);
+    assert!(stdout.contains("MAE"));
     let map = echomap_shared::TransmitterMap::from_json(
         &std::fs::read_to_string(out.join("map.json")).unwrap(),
     )
@@ -498,18 +479,13 @@ fn match_and_merge_commands() {
     assert!(!out2.exists());
 }
 
-/// `run --out DIR --log LOG --particles 100 --quiet --seed 3` plus `extra`; must succeed.
-fn run_ok(log: &Path, out: &Path, extra: &[&str]) {
+/// `run --log LOG --out OUT --particles 100 --quiet --seed SEED` plus `extra`; must succeed.
+/// Returns what it printed.
+fn run_ok(log: &Path, out: &Path, seed: u64, extra: &[&str]) -> String {
     let st = agent()
-        .args([
-            "run",
-            "--particles",
-            "100",
-            "--quiet",
-            "--seed",
-            "3",
-            "--log",
-        ])
+        .args(["run", "--particles", "100", "--quiet", "--seed"])
+        .arg(seed.to_string())
+        .arg("--log")
         .arg(log)
         .arg("--out")
         .arg(out)
@@ -521,6 +497,7 @@ fn run_ok(log: &Path, out: &Path, extra: &[&str]) {
         "{}",
         String::from_utf8_lossy(&st.stderr)
     );
+    String::from_utf8_lossy(&st.stdout).into_owned()
 }
 
 #[test]
@@ -530,7 +507,7 @@ fn a_prior_the_configuration_says_not_to_use_leaves_the_run_as_if_alone() {
     simulate_indoor("user01", 3, &sim1);
     simulate_indoor("user02", 3, &sim2);
     let first = dir.path().join("first");
-    run_ok(&sim1, &first, &[]);
+    run_ok(&sim1, &first, 3, &[]);
     let prior = first.join("map.json");
     let prior = prior.to_str().unwrap();
     let (alone, with, ignored) = (
@@ -538,11 +515,12 @@ fn a_prior_the_configuration_says_not_to_use_leaves_the_run_as_if_alone() {
         dir.path().join("with"),
         dir.path().join("ignored"),
     );
-    run_ok(&sim2, &alone, &[]);
-    run_ok(&sim2, &with, &["--prior", prior]);
+    run_ok(&sim2, &alone, 3, &[]);
+    run_ok(&sim2, &with, 3, &["--prior", prior]);
     run_ok(
         &sim2,
         &ignored,
+        3,
         &["--prior", prior, "--set", "prior.use_in_filter=false"],
     );
     assert!(with.join("prior_matches.csv").exists(), "the prior is used");
