@@ -154,25 +154,31 @@ fn the_readme_example_scenario_simulates() {
 
 /// `simulate --scenario indoor --track TRACK --seed SEED --out DIR`, which must succeed.
 fn simulate_indoor(track: &str, seed: u64, dir: &Path) {
-    let st = agent()
-        .args([
-            "simulate",
-            "--scenario",
-            "indoor",
-            "--track",
-            track,
-            "--seed",
-        ])
-        .arg(seed.to_string())
-        .arg("--out")
-        .arg(dir)
-        .output()
-        .unwrap();
+    succeed(
+        agent()
+            .args([
+                "simulate",
+                "--scenario",
+                "indoor",
+                "--track",
+                track,
+                "--seed",
+            ])
+            .arg(seed.to_string())
+            .arg("--out")
+            .arg(dir),
+    );
+}
+
+/// Runs `cmd`, which must succeed (else the assertion shows its stderr); returns its stdout.
+fn succeed(cmd: &mut Command) -> String {
+    let st = cmd.output().unwrap();
     assert!(
         st.status.success(),
         "{}",
         String::from_utf8_lossy(&st.stderr)
     );
+    String::from_utf8_lossy(&st.stdout).into_owned()
 }
 
 #[test]
@@ -482,22 +488,16 @@ fn match_and_merge_commands() {
 /// `run --log LOG --out OUT --particles 100 --quiet --seed SEED` plus `extra`; must succeed.
 /// Returns what it printed.
 fn run_ok(log: &Path, out: &Path, seed: u64, extra: &[&str]) -> String {
-    let st = agent()
-        .args(["run", "--particles", "100", "--quiet", "--seed"])
-        .arg(seed.to_string())
-        .arg("--log")
-        .arg(log)
-        .arg("--out")
-        .arg(out)
-        .args(extra)
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
-    String::from_utf8_lossy(&st.stdout).into_owned()
+    succeed(
+        agent()
+            .args(["run", "--particles", "100", "--quiet", "--seed"])
+            .arg(seed.to_string())
+            .arg("--log")
+            .arg(log)
+            .arg("--out")
+            .arg(out)
+            .args(extra),
+    )
 }
 
 #[test]
