@@ -20,6 +20,7 @@ pub mod local_server;
 pub mod mrclam;
 pub mod output;
 pub mod plot;
+pub mod radio;
 pub mod remote;
 pub mod run;
 pub mod sim;

@@ -1,0 +1,146 @@
+//! The channel estimator against its theory: a single path's delay and angle errors against
+//! the Cramér–Rao bound, and two equal paths one inverse bandwidth apart. Seeded Monte Carlo
+//! trials; the tolerances are stated with each test.
+
+use echomap_agent::radio::array::{ArrayModel, uniform_circular};
+use echomap_agent::radio::sage::{PathEstimate, SageConfig, SnapshotData, estimate};
+use nalgebra::Complex;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+
+/// An 8-element uniform circular array at half-wavelength spacing, 1.5 GHz, sampled at the
+/// bandwidth.
+fn uca8() -> ArrayModel {
+    let wavelength_m = 299_792_458.0 / 1.5e9;
+    let radius_m = wavelength_m / (4.0 * (std::f64::consts::PI / 8.0).sin());
+    ArrayModel {
+        elements_m: uniform_circular(8, radius_m),
+        wavelength_m,
+        rho: 1.0,
+    }
+}
+
+/// The samples of `paths` (delay, angle, amplitude) in unit-variance complex noise.
+fn snapshot(
+    model: &ArrayModel,
+    samples: usize,
+    paths: &[(f64, f64, Complex<f64>)],
+    rng: &mut ChaCha8Rng,
+) -> Vec<Complex<f64>> {
+    let m = model.elements();
+    let mut y = vec![Complex::new(0.0, 0.0); m * samples];
+    for (e, x) in y.iter_mut().enumerate() {
+        let re: f64 = rng.sample(StandardNormal);
+        let im: f64 = rng.sample(StandardNormal);
+        *x = Complex::new(re, im) * std::f64::consts::FRAC_1_SQRT_2;
+        let (el, n) = (e / samples, e % samples);
+        for &(tau, th, alpha) in paths {
+            *x += alpha * model.steering(th)[el] * model.pulse(n as f64 - tau);
+        }
+    }
+    y
+}
+
+/// The correlator's processing gain the per-sample SNRs below are taken before (64 samples,
+/// as the simulator's estimator integrates).
+const GAIN: f64 = 64.0;
+
+#[test]
+fn a_single_paths_errors_are_within_one_and_a_half_times_the_cramer_rao_bound() {
+    let model = uca8();
+    let samples = 64;
+    let cfg = SageConfig::default();
+    for snr_db in [0.0, 10.0, 20.0, 30.0] {
+        let snr = 10f64.powf(snr_db / 10.0) * GAIN;
+        let mut rng = ChaCha8Rng::seed_from_u64(7 + snr_db as u64);
+        let trials = 300;
+        let (mut se_tau, mut se_th, mut bound_tau, mut bound_th) = (0.0, 0.0, 0.0, 0.0);
+        let mut missed = 0;
+        for _ in 0..trials {
+            let tau = 10.0 + 40.0 * rng.random::<f64>();
+            let th = std::f64::consts::PI * (2.0 * rng.random::<f64>() - 1.0);
+            let phase = std::f64::consts::TAU * rng.random::<f64>();
+            let alpha = Complex::from_polar(snr.sqrt(), phase);
+            let y = snapshot(&model, samples, &[(tau, th, alpha)], &mut rng);
+            let found = estimate(&model, SnapshotData { data: &y, samples }, 1.0, &[], &cfg);
+            let Some(p) = found
+                .iter()
+                .max_by(|a, b| a.statistic.total_cmp(&b.statistic))
+            else {
+                missed += 1;
+                continue;
+            };
+            let (b_tau, b_th) = model.crb(samples, tau, th, snr);
+            se_tau += (p.delay - tau).powi(2);
+            se_th += echomap_shared::wrap_angle(p.aoa_rad - th).powi(2);
+            bound_tau += b_tau * b_tau;
+            bound_th += b_th * b_th;
+        }
+        let ratio_tau = (se_tau / bound_tau).sqrt();
+        let ratio_th = (se_th / bound_th).sqrt();
+        println!(
+            "SNR {snr_db:>4} dB/sample: delay RMSE/CRB {ratio_tau:.3}, angle RMSE/CRB {ratio_th:.3}, CRB {:.4} samples {:.5} rad, missed {missed}/{trials}",
+            (bound_tau / trials as f64).sqrt(),
+            (bound_th / trials as f64).sqrt()
+        );
+        assert_eq!(missed, 0, "{snr_db} dB");
+        assert!(ratio_tau <= 1.5, "{snr_db} dB: delay {ratio_tau}");
+        assert!(ratio_th <= 1.5, "{snr_db} dB: angle {ratio_th}");
+    }
+}
+
+#[test]
+fn two_equal_paths_one_inverse_bandwidth_apart_are_resolved() {
+    let model = uca8();
+    let samples = 64;
+    let cfg = SageConfig::default();
+    let snr = 10f64.powf(10.0 / 10.0) * GAIN;
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let trials = 200;
+    let mut resolved = 0;
+    for _ in 0..trials {
+        // 1/B apart (one sample at f_s = B), same angle: the delay alone must part them
+        let tau = 20.0 + 20.0 * rng.random::<f64>();
+        let th = std::f64::consts::PI * (2.0 * rng.random::<f64>() - 1.0);
+        let p1 = std::f64::consts::TAU * rng.random::<f64>();
+        let p2 = std::f64::consts::TAU * rng.random::<f64>();
+        let truth = [
+            (tau, th, Complex::from_polar(snr.sqrt(), p1)),
+            (tau + 1.0, th, Complex::from_polar(snr.sqrt(), p2)),
+        ];
+        let y = snapshot(&model, samples, &truth, &mut rng);
+        let found: Vec<PathEstimate> =
+            estimate(&model, SnapshotData { data: &y, samples }, 1.0, &[], &cfg);
+        // resolved: two estimates, each within a quarter of the separation of its own path
+        let near = |t: f64| {
+            found.iter().any(|p| {
+                (p.delay - t).abs() < 0.25 && echomap_shared::wrap_angle(p.aoa_rad - th).abs() < 0.1
+            })
+        };
+        if found.len() == 2 && near(tau) && near(tau + 1.0) {
+            resolved += 1;
+        }
+    }
+    println!("two equal paths 1/B apart at 10 dB/sample: {resolved}/{trials} resolved");
+    assert!(resolved * 10 >= trials * 9, "{resolved}/{trials}");
+}
+
+#[test]
+fn noise_alone_rarely_makes_a_path() {
+    let model = uca8();
+    let samples = 64;
+    let cfg = SageConfig::default();
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let trials = 2000;
+    let with_path = (0..trials)
+        .filter(|_| {
+            let y = snapshot(&model, samples, &[], &mut rng);
+            !estimate(&model, SnapshotData { data: &y, samples }, 1.0, &[], &cfg).is_empty()
+        })
+        .count();
+    // at most P_fa = 10⁻³ per snapshot: at most 2 expected in 2,000; 8 or more would happen
+    // with probability 0.001 at that rate
+    println!("noise alone: {with_path}/{trials} snapshots with a path");
+    assert!(with_path < 8, "{with_path}/{trials}");
+}
