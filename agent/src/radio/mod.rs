@@ -9,4 +9,7 @@
 //! - `estimate`: CIR directory → `echomap.log.v1` with the estimator's sensor profile.
 
 pub mod array;
+pub mod cir;
+pub mod estimate;
+pub mod kest;
 pub mod sage;

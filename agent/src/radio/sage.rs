@@ -52,6 +52,8 @@ pub struct PathEstimate {
     pub amplitude: Complex<f64>,
     /// the generalized likelihood ratio `T` of the path against noise
     pub statistic: f64,
+    /// the index of the seed it was refined from; None for a new path
+    pub seed: Option<usize>,
 }
 
 /// A path to start from: the tracker's prediction of a known path.
@@ -81,8 +83,9 @@ pub fn estimate(
     let eta_new = (s.cells() / cfg.false_alarm_probability).ln();
     let eta_keep = (1.0 / cfg.false_alarm_probability).ln();
     let mut paths: Vec<(PathEstimate, f64)> = Vec::new();
-    for seed in seeds.iter().take(cfg.max_paths) {
-        let p = s.refine(seed.delay, seed.aoa_rad, s.angle_step());
+    for (i, seed) in seeds.iter().enumerate().take(cfg.max_paths) {
+        let mut p = s.refine(seed.delay, seed.aoa_rad, s.angle_step());
+        p.seed = Some(i);
         s.subtract(&p, 1.0);
         paths.push((p, eta_keep));
     }
@@ -268,6 +271,7 @@ impl<'a> Solver<'a> {
             aoa_rad: if m > 1 { aoa } else { 0.0 },
             amplitude: z / (m as f64 * e),
             statistic: z.norm_sqr() / (self.noise_var * m as f64 * e),
+            seed: None,
         }
     }
 
@@ -278,7 +282,8 @@ impl<'a> Solver<'a> {
             let mut moved: f64 = 0.0;
             for (p, _) in paths.iter_mut() {
                 self.subtract(p, -1.0);
-                let q = self.refine(p.delay, p.aoa_rad, 0.5 * self.angle_step());
+                let mut q = self.refine(p.delay, p.aoa_rad, 0.5 * self.angle_step());
+                q.seed = p.seed;
                 moved = moved.max((q.delay - p.delay).abs());
                 *p = q;
                 self.subtract(p, 1.0);

@@ -3,6 +3,7 @@
 //! that change when a component is lost), and a gyroscope.
 
 pub mod builtin;
+pub mod channel;
 pub mod raytrace;
 pub mod scenario;
 pub mod simulate;

@@ -215,7 +215,31 @@ pub fn simulate(
     track_name: &str,
     opts: SimOptions,
 ) -> Result<SimOutput, ScenarioError> {
+    Ok(simulate_paths(scenario, track_name, opts, false)?.0)
+}
+
+/// One traced path at one snapshot, as the channel carries it (before resolution and
+/// detection): what a CIR is made of.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ChannelPath {
+    /// path length plus clock offset (m)
+    pub distance_m: f64,
+    /// angle of arrival relative to the heading (rad)
+    pub aoa_rad: f64,
+    /// per-sample SNR (dB), with fading
+    pub snr_db: f64,
+}
+
+/// `simulate`, and with `channel` every traced path of every snapshot.
+#[allow(clippy::type_complexity)]
+pub fn simulate_paths(
+    scenario: &Scenario,
+    track_name: &str,
+    opts: SimOptions,
+    channel: bool,
+) -> Result<(SimOutput, Option<Vec<Vec<ChannelPath>>>), ScenarioError> {
     scenario.validate()?;
+    let mut channel_paths: Option<Vec<Vec<ChannelPath>>> = channel.then(Vec::new);
     let track: &Track = scenario.track(track_name)?;
     let (geo, seqs, traj) = tracing_setup(scenario, track);
     let dt = 1.0 / scenario.snapshot_rate_hz;
@@ -290,6 +314,18 @@ pub fn simulate(
             if !v {
                 fading[seq] = None;
             }
+        }
+        if let Some(ch) = channel_paths.as_mut() {
+            ch.push(
+                cands
+                    .iter()
+                    .map(|c| ChannelPath {
+                        distance_m: c.distance_m,
+                        aoa_rad: c.aoa_rad,
+                        snr_db: c.snr_db,
+                    })
+                    .collect(),
+            );
         }
         // Resolution: components already tracked first (the estimator's tracking loop holds
         // them), then the strongest; a path too close to a kept one is absorbed by it.
@@ -396,10 +432,13 @@ pub fn simulate(
         poses,
         transmitters: true_tx,
     };
-    Ok(SimOutput {
-        log: MeasurementLog { header, snapshots },
-        truth,
-    })
+    Ok((
+        SimOutput {
+            log: MeasurementLog { header, snapshots },
+            truth,
+        },
+        channel_paths,
+    ))
 }
 
 /// Removes the components of every track whose first and last detections lie less than

@@ -6,7 +6,10 @@ use clap::{Args, Parser, Subcommand};
 use echomap_agent::config::{self, ConfigFile, Layers, Preset, Resolved};
 use echomap_agent::filter::{Association, PriorTracker};
 use echomap_agent::mrclam::{ImportOptions, OdometryDelay};
-use echomap_agent::sim::simulate::{SimOptions, simulate};
+use echomap_agent::radio::cir::Cir;
+use echomap_agent::radio::estimate::{FrontEndConfig, front_end};
+use echomap_agent::sim::channel::synthesize;
+use echomap_agent::sim::simulate::{SimOptions, simulate, simulate_paths};
 use echomap_agent::sim::{Scenario, load_scenario, user_tracks};
 use echomap_agent::{demo, evaluate, files, mrclam, output, plot, remote};
 use echomap_shared::SensorProfile;
@@ -33,6 +36,9 @@ pub enum Command {
     Demo(DemoArgs),
     /// Simulate one track of a scenario: writes log.jsonl and truth.json into --out.
     Simulate(SimulateArgs),
+    /// Channel estimation: paths from a sampled channel (CIR) by SAGE, tracked over
+    /// snapshots; writes log.jsonl with the estimator's sensor profile into --out.
+    Estimate(EstimateArgs),
     /// Run single-user Channel-SLAM on a log (or a freshly simulated track); writes map.json,
     /// track.csv, summary.json and plots into --out.
     Run(Box<RunArgs>),
@@ -189,6 +195,19 @@ pub struct SimulateArgs {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// output directory (created if missing)
+    #[arg(long)]
+    pub out: PathBuf,
+    /// also write the sampled channel (cir.json + cir.npy: every path at every antenna, in
+    /// noise), the input of `estimate`
+    #[arg(long)]
+    pub cir: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct EstimateArgs {
+    /// directory with cir.json and cir.npy (and truth.json, copied along when present)
+    pub cir_dir: PathBuf,
+    /// output directory for log.jsonl (created if missing)
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -519,15 +538,17 @@ pub fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Simulate(a) => {
             let scenario = load_scenario(&a.scenario, a.toa_only)?;
-            let out = simulate(
-                &scenario,
-                &a.track,
-                SimOptions {
-                    seed: a.seed,
-                    toa_only: a.toa_only,
-                },
-            )?;
+            let opts = SimOptions {
+                seed: a.seed,
+                toa_only: a.toa_only,
+            };
+            let (out, channel) = simulate_paths(&scenario, &a.track, opts, a.cir)?;
             files::write_log_dir(&out.log, &out.truth, &a.out)?;
+            if let Some(paths) = channel {
+                let aoa = scenario.receiver.aoa && !a.toa_only;
+                let cir = synthesize(&scenario, &out.log, &paths, aoa, a.seed);
+                cir.write(&a.out)?;
+            }
             let comps: usize = out.log.snapshots.iter().map(|s| s.components.len()).sum();
             println!(
                 "simulated {} / {}: {} snapshots, {:.1} components per snapshot, {} track ids → {}",
@@ -541,6 +562,36 @@ pub fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Run(a) => run_command(&a),
+        Command::Estimate(a) => {
+            let cir = Cir::read(&a.cir_dir)?;
+            let (log, stats) = front_end(&cir, &FrontEndConfig::default());
+            std::fs::create_dir_all(&a.out)
+                .with_context(|| format!("creating {}", a.out.display()))?;
+            let log_path = a.out.join("log.jsonl");
+            let mut tmp = tempfile::NamedTempFile::new_in(&a.out)?;
+            {
+                let mut w = std::io::BufWriter::new(tmp.as_file_mut());
+                log.write_to(&mut w)
+                    .with_context(|| format!("writing {}", log_path.display()))?;
+                std::io::Write::flush(&mut w)?;
+            }
+            tmp.persist(&log_path)
+                .with_context(|| format!("writing {}", log_path.display()))?;
+            let truth = a.cir_dir.join("truth.json");
+            if truth.exists() && a.cir_dir.canonicalize()? != a.out.canonicalize()? {
+                std::fs::copy(&truth, a.out.join("truth.json"))
+                    .with_context(|| format!("copying {}", truth.display()))?;
+            }
+            println!(
+                "estimated {} snapshots: {:.1} paths per snapshot, {} tracks, noise variance {:.3} → {}",
+                stats.snapshots,
+                stats.paths_per_snapshot,
+                stats.tracks,
+                stats.noise_variance,
+                log_path.display()
+            );
+            Ok(())
+        }
         Command::Config(ConfigCommand::Print(a)) => {
             let profile = input_profile(&a.input)?;
             let r = a.config.resolve(profile.as_ref())?;
