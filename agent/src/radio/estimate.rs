@@ -140,7 +140,7 @@ pub fn front_end(cir: &Cir, cfg: &FrontEndConfig) -> (MeasurementLog, FrontEndSt
             });
         }
         for (t, u) in tracker.tracks.iter_mut().zip(&updated) {
-            if !u && t.missed < usize::MAX {
+            if !u {
                 t.missed += 1;
             }
         }

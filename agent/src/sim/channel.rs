@@ -11,17 +11,12 @@
 
 use super::SPEED_OF_LIGHT;
 use super::scenario::Scenario;
-use super::simulate::ChannelPath;
+use super::simulate::{ChannelPath, STREAM_CIR_NOISE, rng};
 use crate::radio::array::uniform_square;
 use crate::radio::cir::{CIR_FORMAT, Cir, CirMeta, CirSnapshot};
 use echomap_shared::log::MeasurementLog;
 use nalgebra::Complex;
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
-
-/// Stream id of the CIR's noise (the simulator's other streams are 1–4).
-const STREAM_CIR_NOISE: u64 = 5;
 
 /// Paths weaker than this below the detection threshold are left out of the CIR (dB): their
 /// energy is far below the noise of one sample.
@@ -77,7 +72,7 @@ pub fn synthesize(
     };
     let model = meta.model();
     let m = model.elements();
-    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ (STREAM_CIR_NOISE << 56));
+    let mut rng = rng(seed, STREAM_CIR_NOISE);
     let sigma = std::f64::consts::FRAC_1_SQRT_2;
     let weakest = scenario.estimator.detection_threshold_db - WEAKEST_PATH_BELOW_THRESHOLD_DB;
     let mut data = Vec::with_capacity(paths.len() * m * samples);

@@ -60,8 +60,11 @@ const STREAM_FADING: u64 = 1;
 const STREAM_LOSS: u64 = 2;
 const STREAM_NOISE: u64 = 3;
 const STREAM_GYRO: u64 = 4;
+/// The sampled channel's noise (`channel::synthesize`).
+pub(super) const STREAM_CIR_NOISE: u64 = 5;
 
-fn rng(seed: u64, stream: u64) -> ChaCha8Rng {
+/// The independent random stream `stream` of `seed`.
+pub(super) fn rng(seed: u64, stream: u64) -> ChaCha8Rng {
     let mut r = ChaCha8Rng::seed_from_u64(seed);
     r.set_stream(stream);
     r
