@@ -27,16 +27,33 @@ pub fn read_log_dir(dir: &Path) -> Result<(MeasurementLog, Option<GroundTruth>)>
     Ok((log, truth))
 }
 
-/// Writes `log.jsonl` and `truth.json` into `dir` (created if missing).
-pub fn write_log_dir(log: &MeasurementLog, truth: &GroundTruth, dir: &Path) -> Result<()> {
+/// Writes `dir/log.jsonl` (`dir` created if missing) through a temporary file renamed into
+/// place, so a failed write leaves no half-written log.
+pub fn write_log(log: &MeasurementLog, dir: &Path) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let log_path = dir.join("log.jsonl");
-    let file = std::fs::File::create(&log_path)
+    let mut tmp = tempfile::NamedTempFile::new_in(dir)
         .with_context(|| format!("creating {}", log_path.display()))?;
-    let mut w = std::io::BufWriter::new(file);
-    log.write_to(&mut w)
+    {
+        let mut w = std::io::BufWriter::new(tmp.as_file_mut());
+        log.write_to(&mut w)
+            .with_context(|| format!("writing {}", log_path.display()))?;
+        std::io::Write::flush(&mut w)?;
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        tmp.as_file()
+            .set_permissions(std::fs::Permissions::from_mode(0o644))?;
+    }
+    tmp.persist(&log_path)
         .with_context(|| format!("writing {}", log_path.display()))?;
-    std::io::Write::flush(&mut w)?;
+    Ok(())
+}
+
+/// Writes `log.jsonl` and `truth.json` into `dir` (created if missing).
+pub fn write_log_dir(log: &MeasurementLog, truth: &GroundTruth, dir: &Path) -> Result<()> {
+    write_log(log, dir)?;
     let truth_path = dir.join("truth.json");
     std::fs::write(&truth_path, serde_json::to_string(truth)?)
         .with_context(|| format!("writing {}", truth_path.display()))?;

@@ -49,7 +49,7 @@ pub struct Track {
 }
 
 /// The tracker's state between snapshots.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone)]
 pub struct Tracker {
     pub cfg: TrackerConfig,
     pub tracks: Vec<Track>,

@@ -565,18 +565,8 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Estimate(a) => {
             let cir = Cir::read(&a.cir_dir)?;
             let (log, stats) = front_end(&cir, &FrontEndConfig::default());
-            std::fs::create_dir_all(&a.out)
-                .with_context(|| format!("creating {}", a.out.display()))?;
+            files::write_log(&log, &a.out)?;
             let log_path = a.out.join("log.jsonl");
-            let mut tmp = tempfile::NamedTempFile::new_in(&a.out)?;
-            {
-                let mut w = std::io::BufWriter::new(tmp.as_file_mut());
-                log.write_to(&mut w)
-                    .with_context(|| format!("writing {}", log_path.display()))?;
-                std::io::Write::flush(&mut w)?;
-            }
-            tmp.persist(&log_path)
-                .with_context(|| format!("writing {}", log_path.display()))?;
             let truth = a.cir_dir.join("truth.json");
             if truth.exists() && a.cir_dir.canonicalize()? != a.out.canonicalize()? {
                 std::fs::copy(&truth, a.out.join("truth.json"))
