@@ -15,7 +15,9 @@
 //! A key no layer knows, or a value of the wrong type or out of range, is an error that
 //! names the key.
 
-use crate::filter::{AnchorPose, Association, BPrior, FilterConfig, NoiseModel, PriorSettings};
+use crate::filter::{
+    AnchorPose, Association, BPrior, FilterConfig, NoiseModel, PriorSettings, Proposal,
+};
 use echomap_shared::matching::{MatchConfig, MatchScore};
 use echomap_shared::sensor::SensorProfile;
 use serde::{Deserialize, Serialize};
@@ -52,6 +54,9 @@ pub struct MotionConfig {
     pub speed_std_mps: f64,
     /// the known initial speed (m/s); unset: from the ground truth when there is one, else 0
     pub initial_speed_mps: Option<f64>,
+    /// how each particle draws its motion noise: `informed` by the snapshot's detections of
+    /// the transmitters it has mapped (FastSLAM 2.0), or from the `motion` model alone
+    pub proposal: Proposal,
 }
 
 /// What the filter assumes of the detections.
@@ -144,6 +149,7 @@ impl Default for RunConfig {
                 speed_noise_mps_per_sqrt_s: f.speed_noise_mps_per_sqrt_s,
                 speed_std_mps: f.speed_measurement_std_mps,
                 initial_speed_mps: None,
+                proposal: f.proposal,
             },
             measurement: MeasurementConfig {
                 distance_floor_m: f.noise.distance_floor_m,
@@ -385,6 +391,7 @@ impl RunConfig {
             heading_noise_rad_per_sqrt_rad: m.heading_noise_rad_per_sqrt_rad,
             speed_noise_mps_per_sqrt_s: m.speed_noise_mps_per_sqrt_s,
             speed_measurement_std_mps: m.speed_std_mps,
+            proposal: m.proposal,
             association_p0: a.p0,
             association_gate: a.gate_chi2,
             association_window: a.window,

@@ -559,3 +559,87 @@ pub fn draw_panels(
     let size = (500 * cols as u32, 40 + 320 * rows as u32);
     with_backend(out, size, |root| body!(root), |root| body!(root))
 }
+
+/// The channel waterfall of a sampled CIR: power per delay sample (summed over the elements,
+/// in dB over the noise) against time, with the detections of `log` on top, coloured by track
+/// (PNG only: one cell per snapshot and sample).
+pub fn draw_waterfall(
+    cir: &crate::radio::cir::Cir,
+    noise_variance: f64,
+    log: &echomap_shared::log::MeasurementLog,
+    out: &Path,
+) -> Result<()> {
+    let meta = &cir.meta;
+    let (n, m) = (meta.samples, meta.elements_m.len());
+    let mps = meta.metres_per_sample();
+    let times: Vec<f64> = meta.snapshots.iter().map(|s| s.t).collect();
+    let (t0, t1) = match (times.first(), times.last()) {
+        (Some(a), Some(b)) => (*a, b.max(a + 1e-3)),
+        _ => bail!("the CIR has no snapshot"),
+    };
+    let dt = if times.len() > 1 {
+        (t1 - t0) / (times.len() - 1) as f64
+    } else {
+        1.0
+    };
+    let d0 = meta.delay_origin_m;
+    let d1 = d0 + n as f64 * mps;
+    let scale = 1.0 / (m as f64 * noise_variance.max(f64::MIN_POSITIVE));
+    let cells: Vec<(f64, f64, f64)> = times
+        .iter()
+        .enumerate()
+        .flat_map(|(k, &t)| {
+            let y = cir.snapshot(k);
+            (0..n).map(move |i| {
+                let p: f64 = (0..m).map(|e| f64::from(y[e * n + i].norm_sqr())).sum();
+                (t, d0 + i as f64 * mps, 10.0 * (p * scale).max(1e-3).log10())
+            })
+        })
+        .collect();
+    let top = cells.iter().map(|c| c.2).fold(0.0, f64::max).max(1.0);
+    let dots: Vec<(f64, f64, u64)> = log
+        .snapshots
+        .iter()
+        .flat_map(|s| s.components.iter().map(move |c| (s.t, c.d, c.track)))
+        .collect();
+    ensure_font();
+    if !out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("png"))
+    {
+        bail!("the waterfall is a PNG: {}", out.display());
+    }
+    let root = BitMapBackend::new(out, (1200, 700)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(
+            "channel waterfall: power over noise (dB), tracked paths on top",
+            ("sans-serif", 22),
+        )
+        .margin(10)
+        .x_label_area_size(35)
+        .y_label_area_size(55)
+        .build_cartesian_2d(t0..t1 + dt, d0..d1)
+        .map_err(|e| anyhow!("{e}"))?;
+    chart
+        .configure_mesh()
+        .disable_mesh()
+        .x_desc("time (s)")
+        .y_desc("propagation distance (m)")
+        .draw()
+        .map_err(|e| anyhow!("{e}"))?;
+    chart
+        .draw_series(cells.iter().map(|&(t, d, db)| {
+            let c = ViridisRGB.get_color((db / top).clamp(0.0, 1.0));
+            Rectangle::new([(t, d), (t + dt, d + mps)], c.filled())
+        }))
+        .map_err(|e| anyhow!("{e}"))?;
+    chart
+        .draw_series(dots.iter().map(|&(t, d, track)| {
+            let c = TRACK_COLORS[(track % TRACK_COLORS.len() as u64) as usize];
+            Circle::new((t + 0.5 * dt, d), 1, c.mix(0.9).filled())
+        }))
+        .map_err(|e| anyhow!("{e}"))?;
+    root.present()
+        .map_err(|e| anyhow!("writing {}: {e}", out.display()))
+}

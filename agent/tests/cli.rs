@@ -528,3 +528,67 @@ fn a_prior_the_configuration_says_not_to_use_leaves_the_run_as_if_alone() {
     let track = |d: &Path| std::fs::read_to_string(d.join("track.csv")).unwrap();
     assert_eq!(track(&ignored), track(&alone), "as if alone");
 }
+
+/// `simulate --cir` then `estimate`: the log, the truth and the channel waterfall land in the
+/// output; an invalid confirmation time is refused before anything is written.
+#[test]
+fn estimate_turns_a_simulated_channel_into_a_log_and_a_waterfall() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = dir.path().join("sim");
+    let st = agent()
+        .args(["simulate", "--scenario", "indoor", "--track", "user05"])
+        .args(["--seed", "4", "--cir", "--out"])
+        .arg(&sim)
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let est = dir.path().join("est");
+    let bad = agent()
+        .arg("estimate")
+        .arg(&sim)
+        .args(["--min-track-s=-1", "--out"])
+        .arg(&est)
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(
+        String::from_utf8_lossy(&bad.stderr).contains("--min-track-s"),
+        "{}",
+        String::from_utf8_lossy(&bad.stderr)
+    );
+    assert!(!est.exists(), "nothing is written for a refused run");
+    let st = agent()
+        .arg("estimate")
+        .arg(&sim)
+        .arg("--out")
+        .arg(&est)
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    assert_eq!(files_in(&est), ["log.jsonl", "truth.json", "waterfall.png"]);
+    let log = echomap_shared::log::MeasurementLog::parse(
+        &std::fs::read_to_string(est.join("log.jsonl")).unwrap(),
+    )
+    .unwrap();
+    let ideal = echomap_shared::log::MeasurementLog::parse(
+        &std::fs::read_to_string(sim.join("log.jsonl")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(log.snapshots.len(), ideal.snapshots.len());
+    assert!(log.header.sensor.is_some_and(|s| s.distance_m.is_some()));
+    assert!(log.snapshots.iter().any(|s| !s.components.is_empty()));
+    let png = std::fs::read(est.join("waterfall.png")).unwrap();
+    assert!(
+        png.starts_with(b"\x89PNG") && png.len() > 10_000,
+        "{} bytes",
+        png.len()
+    );
+}

@@ -274,7 +274,13 @@ fn the_front_end_finds_the_simulated_paths_in_their_sampled_channel() {
     let per = cir.meta.elements_m.len() * cir.meta.samples;
     cir.meta.snapshots.truncate(keep);
     cir.data.truncate(keep * per);
-    let (log, stats) = front_end(&cir, &FrontEndConfig::default());
+    // every track, also those followed for less than the log's confirmation time: what the
+    // estimator and tracker find
+    let every = FrontEndConfig {
+        min_track_s: 0.0,
+        ..FrontEndConfig::default()
+    };
+    let (log, stats) = front_end(&cir, &every);
     let resolution_m = cir.meta.metres_per_sample();
     let (mut apart, mut found) = (0, 0);
     for (truth, est) in paths.iter().zip(&log.snapshots).take(keep) {

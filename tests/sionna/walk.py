@@ -2,6 +2,7 @@
 measurement log (`echomap.log.v1`) with its ground truth (`echomap.truth.v1`).
 
     python3 tests/sionna/walk.py --scene munich --seed 1 --out OUT_DIR
+    python3 tests/sionna/walk.py --scene simple_street_canyon --seed 1 --cir --out OUT_DIR
 
 Needs `pip install -r tests/sionna/requirements.txt` and, on a CPU-only machine, LLVM for
 Dr.Jit (Debian: `apt-get install libllvm19`, then
@@ -25,6 +26,14 @@ What it makes (the same recipe as the ray-traced walks echomap is measured on):
 - Noise: σ_d = √(0.1² + (1.65/√(2·SNR))²) m, σ_θ = √(0.035² + (0.35/√(2·SNR))²) rad.
 - Odometry: gyro = true heading rate + 0.003 rad/s bias + white noise 0.005 rad/s·√(10 Hz);
   speed = 1.02 × true speed + N(0, 0.05 m/s).
+- With `--cir`, also the sampled channel as `echomap.cir.v1` (`cir.json` + `cir.npy`, the input
+  of `echomap-agent estimate`): every traced path down to 30 dB below the detection threshold,
+  with Sionna's complex gain (its carrier phase included), its delay and its direction of
+  arrival in 3D — at a 3 × 3 square array of isotropic elements λ/2 apart in the horizontal
+  plane, a path arriving at an elevation ε contributes the phase of its horizontal part only
+  (cos ε) — band-limited by a sinc pulse of the bandwidth, sampled at the bandwidth, in complex
+  white noise of unit variance per sample and element (per-sample SNR = the path's SNR over the
+  band). Nothing is resolved or tracked: that is what `estimate` does.
 - `truth.json`: poses in the local frame (start pose, +x along the initial heading) and the
   physical transmitter (track 0).
 """
@@ -131,12 +140,13 @@ def lookup(xs, ys, grid, x, y):
     return grid[i, j]
 
 
-def plan(scene, layout, walk, cell):
+def plan(scene, layout, walk, cell, loop_m):
     """The loop and the transmitter (drawn by `layout`), the start and direction (by `walk`)."""
     xs, ys, z, street, clearance = street_grid(scene, cell)
-    loops = closed_loops(xs, ys, clearance, 300.0, 500.0)
+    lo, hi = loop_m
+    loops = closed_loops(xs, ys, clearance, lo, hi)
     if not loops:
-        sys.exit("no closed loop of 300–500 m at 6 m from the buildings in this scene")
+        sys.exit(f"no closed loop of {lo:.0f}–{hi:.0f} m at 6 m from the buildings in this scene: try --loop-m")
     loop = loops[layout.integers(len(loops))]
     pts = resample_closed(loop, SPEED / RATE_HZ)
     clear = np.array([lookup(xs, ys, clearance, x, y) for x, y in pts])
@@ -192,9 +202,11 @@ def trace(scene, pts, tx, xs, ys, z, batch, max_depth, seed):
             seed=seed,
         )
         ar, ai = p.a
-        amp2 = np.array(ar) ** 2 + np.array(ai) ** 2  # [rx, rx_ant, tx, tx_ant, path]
+        gain = np.array(ar) + 1j * np.array(ai)  # [rx, rx_ant, tx, tx_ant, path]
+        amp2 = np.abs(gain) ** 2
         tau = np.array(p.tau)  # [rx, tx, path]
         phi = np.array(p.phi_r)
+        zenith = np.array(p.theta_r)
         valid = np.array(p.valid)
         inter = np.array(p.interactions)  # [depth, rx, tx, path]
         objs = np.array(p.objects)
@@ -210,12 +222,68 @@ def trace(scene, pts, tx, xs, ys, z, batch, max_depth, seed):
                 key = tuple(
                     int(v) for v in np.concatenate([inter[:, r, 0, q], objs[:, r, 0, q], prims[:, r, 0, q]])
                 )
-                paths.append((float(tau[r, 0, q]) * C, float(phi[r, 0, q]), float(pw), key))
+                paths.append(
+                    (
+                        float(tau[r, 0, q]) * C,
+                        float(phi[r, 0, q]),
+                        float(pw),
+                        key,
+                        complex(gain[r, 0, 0, 0, q]),
+                        float(zenith[r, 0, q]),
+                    )
+                )
             out.append(paths)
         for n in names:
             scene.remove(n)
         print(f"  traced {min(b0 + batch, len(pts))}/{len(pts)} snapshots", file=sys.stderr)
     return out, tz
+
+
+def write_cir(a, paths, heading, records):
+    """The sampled channel of every snapshot at a 3 × 3 array (see the module's docstring)."""
+    lam = C / FREQUENCY
+    spacing = lam / 2.0
+    elements = np.array([[(i - 1) * spacing, (j - 1) * spacing] for i in range(3) for j in range(3)])
+    mps = C / BANDWIDTH
+    longest = max((p[0] for snap in paths for p in snap), default=0.0)
+    samples = int(math.ceil(longest / mps)) + 16
+    k_wave = 2.0 * math.pi / lam
+    n = np.arange(samples)
+    weakest_db = DETECT_DB - 30.0
+    y = np.zeros((len(paths), len(elements), samples), dtype=np.complex128)
+    for k, snap in enumerate(paths):
+        for d, phi, pw, _, g, zenith in snap:
+            snr_db = TX_POWER_DBM + 10.0 * math.log10(pw) - NOISE_DBM
+            if snr_db < weakest_db:
+                continue
+            amp = math.sqrt(10.0 ** (snr_db / 10.0)) * g / abs(g)
+            az = phi - heading[k]
+            horizontal = math.sin(zenith)  # cos of the elevation
+            u = horizontal * np.array([math.cos(az), math.sin(az)])
+            steering = np.exp(1j * k_wave * elements @ u)
+            pulse = np.sinc(n - d / mps)
+            y[k] += amp * steering[:, None] * pulse[None, :]
+        noise = np.random.default_rng([a.seed, 4, k])
+        y[k] += (noise.normal(size=y[k].shape) + 1j * noise.normal(size=y[k].shape)) / math.sqrt(2.0)
+    meta = {
+        "format": "echomap.cir.v1",
+        "carrier_hz": FREQUENCY,
+        "bandwidth_hz": BANDWIDTH,
+        "sample_rate_hz": BANDWIDTH,
+        "pulse": "sinc",
+        "delay_origin_m": 0.0,
+        "samples": samples,
+        "elements_m": elements.tolist(),
+        "processing_gain": 1.0,
+        "noise_variance": 1.0,
+        "snapshot_rate_hz": RATE_HZ,
+        "speed": True,
+        "source": f"sionna-rt scene {a.scene} seed {a.seed} (tests/sionna/walk.py --cir)",
+        "snapshots": [{"t": r["t"], "gyro": r["gyro"], "speed": r["speed"]} for r in records],
+    }
+    with open(os.path.join(a.out, "cir.json"), "w") as f:
+        json.dump(meta, f)
+    np.save(os.path.join(a.out, "cir.npy"), y.astype(np.complex64))
 
 
 def main():
@@ -229,7 +297,16 @@ def main():
         " layout share their streets and transmitter (a crowd)",
     )
     ap.add_argument("--out", required=True)
+    ap.add_argument("--cir", action="store_true", help="also write the sampled channel (cir.json + cir.npy)")
     ap.add_argument("--cell", type=float, default=1.0, help="grid cell (m) of the street map")
+    ap.add_argument(
+        "--loop-m",
+        type=float,
+        nargs=2,
+        default=[300.0, 500.0],
+        metavar=("MIN", "MAX"),
+        help="length range of the loop (m); small scenes such as simple_street_canyon need a lower MIN",
+    )
     ap.add_argument("--batch", type=int, default=100, help="receivers traced at once")
     ap.add_argument("--max-depth", type=int, default=3)
     ap.add_argument(
@@ -250,7 +327,7 @@ def main():
     layout = np.random.default_rng([a.seed if a.layout is None else a.layout, 0])
     walk = np.random.default_rng([a.seed, 3])
     scene = rt.load_scene(getattr(rt.scene, a.scene))
-    pts, tx, xs, ys, z = plan(scene, layout, walk, a.cell)
+    pts, tx, xs, ys, z = plan(scene, layout, walk, a.cell, a.loop_m)
     n = len(pts)
     dt = 1.0 / RATE_HZ
     heading = np.array([math.atan2(*(pts[min(k + 1, n - 1)] - pts[k])[::-1]) for k in range(n)])
@@ -276,7 +353,7 @@ def main():
     comps_total = 0
     for k in range(n):
         det = []
-        for d, phi, pw, key in sorted(paths[k], key=lambda p: -p[2]):
+        for d, phi, pw, key, _, _ in sorted(paths[k], key=lambda p: -p[2]):
             snr_db = TX_POWER_DBM + 10.0 * math.log10(pw) - NOISE_DBM
             if snr_db < DETECT_DB:
                 continue
@@ -349,6 +426,8 @@ def main():
     }
     with open(os.path.join(a.out, "truth.json"), "w") as f:
         json.dump(truth, f)
+    if a.cir:
+        write_cir(a, paths, heading, records)
     print(
         f"wrote {a.out}: {n} snapshots, {comps_total / n:.1f} paths per snapshot, {next_id - 1} track ids; transmitter at {tz:.1f} m",
         file=sys.stderr,

@@ -41,6 +41,43 @@ impl std::fmt::Display for Association {
     }
 }
 
+/// How each particle draws its motion noise.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Proposal {
+    /// from the motion model alone (Gentner et al. 2016; FastSLAM 1.0)
+    Motion,
+    /// from the motion model and the snapshot's detections of the transmitters the particle
+    /// has mapped, linearized (FastSLAM 2.0; the importance ratio joins the weight)
+    Informed,
+}
+
+impl Proposal {
+    /// The name used in flags and files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Proposal::Motion => "motion",
+            Proposal::Informed => "informed",
+        }
+    }
+}
+
+impl std::str::FromStr for Proposal {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        [Proposal::Motion, Proposal::Informed]
+            .into_iter()
+            .find(|a| a.name() == s)
+            .ok_or_else(|| format!("unknown proposal {s:?} (known: motion, informed)"))
+    }
+}
+
+impl std::fmt::Display for Proposal {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// Prior on a new transmitter's clock offset b.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -100,6 +137,8 @@ pub struct FilterConfig {
     pub heading_noise_rad_per_sqrt_rad: f64,
     /// speed random walk when no speed is measured (m/s/√s)
     pub speed_noise_mps_per_sqrt_s: f64,
+    /// how each particle draws its motion noise (`proposal`)
+    pub proposal: Proposal,
     /// std of a measured speed (m/s), when the log carries speed
     pub speed_measurement_std_mps: f64,
     /// the known initial speed (m/s) (Gentner et al. 2016 §6.1: the initial state is known)
@@ -176,6 +215,7 @@ impl Default for FilterConfig {
             heading_noise_rad_per_sqrt_s: 0.03,
             heading_noise_rad_per_sqrt_rad: 0.0,
             speed_noise_mps_per_sqrt_s: 0.03,
+            proposal: Proposal::Informed,
             speed_measurement_std_mps: 0.05,
             initial_speed_mps: 0.0,
             initial_speed_std_mps: 0.0,

@@ -14,13 +14,14 @@ pub mod model;
 pub mod particle;
 pub mod prior;
 pub mod prior_map;
+mod proposal;
 pub mod rbpf;
 pub mod srckf;
 pub mod update;
 pub mod visibility;
 pub mod vonmises;
 
-pub use config::{Association, BPrior, FilterConfig, NoiseModel};
+pub use config::{Association, BPrior, FilterConfig, NoiseModel, Proposal};
 pub use prior::{AnchorPose, Prior, PriorSettings, PriorTracker};
 pub use rbpf::{Filter, StepStats};
 

@@ -2,9 +2,10 @@
 //! `Arc`) and the tracks bound to them, and its motion model (Gentner et al. 2016 eq. 16–18).
 
 use super::association::{CandSource, Pending};
-use super::config::FilterConfig;
+use super::config::{FilterConfig, Proposal};
 use super::model::{Comp, Pose, initialize};
 use super::prior_map::Prior;
+use super::proposal;
 use super::srckf::SqrtGaussian;
 use super::update::{Meas, update_mixture};
 use super::vonmises;
@@ -175,6 +176,37 @@ impl Particle {
         self.pose.x += self.pose.speed * dt * h_mid.cos();
         self.pose.y += self.pose.speed * dt * h_mid.sin();
         self.pose.heading = h_new;
+    }
+
+    /// The motion step: from the proposal informed by this snapshot's detections of the
+    /// particle's own transmitters when configured and any inform it (its importance ratio
+    /// joins the weight), else from the motion model.
+    pub(super) fn move_by(
+        &mut self,
+        cfg: &FilterConfig,
+        gyro: f64,
+        speed: Option<f64>,
+        dt: f64,
+        meas: &[(u64, Meas, u32)],
+        rng: &mut ChaCha8Rng,
+    ) {
+        if cfg.proposal == Proposal::Informed && dt > 0.0 {
+            let step = proposal::Step::new(cfg, &self.pose, gyro, speed, dt);
+            let txs = &self.txs;
+            let bound = &self.bound;
+            let detections = meas.iter().filter_map(|(track, m, _)| {
+                bound
+                    .iter()
+                    .find(|(t, _)| t == track)
+                    .map(|&(_, idx)| (m, &txs[idx as usize].comps[..]))
+            });
+            if let Some((pose, ln_ratio)) = proposal::propose(&step, detections, rng) {
+                self.pose = pose;
+                self.log_w += ln_ratio;
+                return;
+            }
+        }
+        self.predict(cfg, gyro, speed, dt, rng);
     }
 
     /// Removes transmitter `slot`, renumbering what points behind it.

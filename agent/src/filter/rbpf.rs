@@ -298,8 +298,8 @@ impl Filter {
                 .zip(rngs)
                 .map(|(p, mut rng)| {
                     let mut detections = Vec::new();
-                    p.predict(cfg, gyro, speed, dt, &mut rng);
                     p.bound.retain(|(t, _)| current.contains(t));
+                    p.move_by(cfg, gyro, speed, dt, &meas, &mut rng);
                     if !p.pending.is_empty() {
                         p.resolve_pending(cfg, &current, &mut rng, |_| false);
                     }

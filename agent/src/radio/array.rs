@@ -27,12 +27,18 @@ impl ArrayModel {
 
     /// `a(θ)`, one complex gain per element.
     pub fn steering(&self, aoa_rad: f64) -> Vec<Complex<f64>> {
+        let mut out = vec![Complex::new(0.0, 0.0); self.elements()];
+        self.steering_into(aoa_rad, &mut out);
+        out
+    }
+
+    /// `a(θ)` written into `out` (one entry per element).
+    pub fn steering_into(&self, aoa_rad: f64, out: &mut [Complex<f64>]) {
         let k = std::f64::consts::TAU / self.wavelength_m;
         let (s, c) = aoa_rad.sin_cos();
-        self.elements_m
-            .iter()
-            .map(|r| Complex::from_polar(1.0, k * (r[0] * c + r[1] * s)))
-            .collect()
+        for (o, r) in out.iter_mut().zip(&self.elements_m) {
+            *o = Complex::from_polar(1.0, k * (r[0] * c + r[1] * s));
+        }
     }
 
     /// `∂a/∂θ`.
@@ -51,6 +57,16 @@ impl ArrayModel {
     /// The pulse at `t` samples from its peak.
     pub fn pulse(&self, t: f64) -> f64 {
         sinc(self.rho * t)
+    }
+
+    /// The pulse at the samples `0..samples` for any delay, at one `sin_cos` per delay
+    /// instead of one `sin` per sample.
+    pub fn pulse_table(&self, samples: usize) -> PulseTable {
+        let w = std::f64::consts::PI * self.rho;
+        PulseTable {
+            w,
+            sin_cos: (0..samples).map(|k| (w * k as f64).sin_cos()).collect(),
+        }
     }
 
     /// The pulse's time derivative (per sample).
@@ -88,6 +104,50 @@ impl ArrayModel {
 }
 
 /// `sin(πx)/(πx)`.
+/// `p(k − τ)` at the samples `k = 0..n` of a window: with `w = π·ρ`,
+/// `sin(w·(k − τ)) = sin(w·k)·cos(w·τ) − cos(w·k)·sin(w·τ)`, the first factors tabulated.
+#[derive(Debug, Clone)]
+pub struct PulseTable {
+    w: f64,
+    sin_cos: Vec<(f64, f64)>,
+}
+
+impl PulseTable {
+    pub fn samples(&self) -> usize {
+        self.sin_cos.len()
+    }
+
+    /// `out[k] = p(k − delay)` for every sample of the window.
+    pub fn fill(&self, delay: f64, out: &mut [f64]) {
+        let (st, ct) = (self.w * delay).sin_cos();
+        for (k, (o, (sk, ck))) in out.iter_mut().zip(&self.sin_cos).enumerate() {
+            let x = self.w * (k as f64 - delay);
+            *o = if x.abs() < 1e-9 {
+                1.0
+            } else {
+                (sk * ct - ck * st) / x
+            };
+        }
+    }
+
+    /// `Σ_k p(k − delay)·w_k` and `Σ_k p(k − delay)²`.
+    pub fn correlate(&self, delay: f64, w: &[Complex<f64>]) -> (Complex<f64>, f64) {
+        let (st, ct) = (self.w * delay).sin_cos();
+        let (mut z, mut e) = (Complex::new(0.0, 0.0), 0.0);
+        for (k, (wk, (sk, ck))) in w.iter().zip(&self.sin_cos).enumerate() {
+            let x = self.w * (k as f64 - delay);
+            let p = if x.abs() < 1e-9 {
+                1.0
+            } else {
+                (sk * ct - ck * st) / x
+            };
+            z += wk * p;
+            e += p * p;
+        }
+        (z, e)
+    }
+}
+
 pub fn sinc(x: f64) -> f64 {
     let px = std::f64::consts::PI * x;
     if px.abs() < 1e-9 { 1.0 } else { px.sin() / px }
@@ -116,6 +176,29 @@ pub fn uniform_square(side: usize, spacing_m: f64) -> Vec<[f64; 2]> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_pulse_table_is_the_pulse() {
+        for rho in [1.0, 0.8, 0.37] {
+            let m = ArrayModel {
+                elements_m: vec![[0.0, 0.0]],
+                wavelength_m: 0.2,
+                rho,
+            };
+            let table = m.pulse_table(200);
+            let mut out = vec![0.0; 200];
+            for delay in [-0.5, 0.0, 3.0, 17.25, 101.999, 199.4] {
+                table.fill(delay, &mut out);
+                for (k, p) in out.iter().enumerate() {
+                    let want = m.pulse(k as f64 - delay);
+                    assert!(
+                        (p - want).abs() < 1e-11,
+                        "rho {rho} delay {delay} k {k}: {p} vs {want}"
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn the_pulse_derivative_is_the_slope_of_the_pulse() {

@@ -17,9 +17,10 @@ use std::collections::HashMap;
 pub struct FrontEndConfig {
     pub sage: SageConfig,
     pub tracker: TrackerConfig,
-    /// tracks detected in fewer snapshots are left out of the log (a confirmation, as a
-    /// tracker's M-of-N rule: a path seen once is as likely noise or a neighbour's echo)
-    pub min_track_snapshots: usize,
+    /// tracks followed for less time than this (s, first to last detection) are left out
+    /// of the log: a confirmation, as a tracker's M-of-N rule. A path seen for a moment is
+    /// as likely noise or a neighbour's echo, and too short to place a transmitter
+    pub min_track_s: f64,
 }
 
 impl Default for FrontEndConfig {
@@ -27,7 +28,7 @@ impl Default for FrontEndConfig {
         FrontEndConfig {
             sage: SageConfig::default(),
             tracker: TrackerConfig::default(),
-            min_track_snapshots: 2,
+            min_track_s: DEFAULT_MIN_TRACK_S,
         }
     }
 }
@@ -41,6 +42,9 @@ pub struct FrontEndStats {
     /// mean noise variance per sample (estimated where the CIR does not state it)
     pub noise_variance: f64,
 }
+
+/// The default confirmation time of a track (s).
+pub const DEFAULT_MIN_TRACK_S: f64 = 0.5;
 
 /// The fastest a path's distance changes (m/s) that a new track allows at its start.
 const MAX_RANGE_RATE_MPS: f64 = 30.0;
@@ -156,7 +160,11 @@ pub fn front_end(cir: &Cir, cfg: &FrontEndConfig) -> (MeasurementLog, FrontEndSt
         });
     }
     let k_total = meta.snapshots.len();
-    history.retain(|_, h| h.len() >= cfg.min_track_snapshots);
+    let times: Vec<f64> = meta.snapshots.iter().map(|s| s.t).collect();
+    history.retain(|_, h| {
+        let (first, last) = (h[0].0, h[h.len() - 1].0);
+        h.len() >= 2 && times[last] - times[first] >= cfg.min_track_s - 1e-9
+    });
     for s in &mut snapshots {
         s.components.retain(|c| history.contains_key(&c.track));
     }

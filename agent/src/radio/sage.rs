@@ -18,7 +18,7 @@
 //! `ln(1/P_fa)`: its place was known before the snapshot. Cost per snapshot: `O(L·M·N)` per
 //! SAGE sweep and `O(G·M·N)` per new path (L paths, G grid angles, N samples).
 
-use super::array::ArrayModel;
+use super::array::{ArrayModel, PulseTable};
 use nalgebra::Complex;
 
 /// Settings of the estimator.
@@ -117,6 +117,7 @@ struct Solver<'a> {
     noise_var: f64,
     residual: Vec<Complex<f64>>,
     grid: Vec<(f64, Vec<Complex<f64>>)>,
+    table: PulseTable,
 }
 
 const GOLDEN: f64 = 0.618_033_988_749_895;
@@ -161,6 +162,7 @@ impl<'a> Solver<'a> {
             noise_var: noise_var.max(f64::MIN_POSITIVE),
             residual: snap.data.to_vec(),
             grid,
+            table: model.pulse_table(snap.samples),
         }
     }
 
@@ -184,9 +186,9 @@ impl<'a> Solver<'a> {
     }
 
     fn pulse(&self, delay: f64) -> Vec<f64> {
-        (0..self.samples)
-            .map(|n| self.model.pulse(n as f64 - delay))
-            .collect()
+        let mut out = vec![0.0; self.samples];
+        self.table.fill(delay, &mut out);
+        out
     }
 
     /// The residual's largest beamformed sample over the angle grid: (delay, angle).
@@ -244,18 +246,14 @@ impl<'a> Solver<'a> {
             let lo = (delay - 1.0).max(-0.5);
             let hi = (delay + 1.0).min(n as f64 - 0.5);
             delay = golden_max(lo, hi, 24, |tau| {
-                let (mut z, mut e) = (Complex::new(0.0, 0.0), 0.0);
-                for (k, wk) in w.iter().enumerate() {
-                    let p = self.model.pulse(k as f64 - tau);
-                    z += wk * p;
-                    e += p * p;
-                }
+                let (z, e) = self.table.correlate(tau, &w);
                 z.norm_sqr() / e.max(f64::MIN_POSITIVE)
             });
             if m > 1 && angle_bracket > 0.0 {
                 let (v, _) = self.delay_matched(&self.pulse(delay));
+                let mut a = vec![Complex::new(0.0, 0.0); m];
                 aoa = golden_max(aoa - angle_bracket, aoa + angle_bracket, 24, |th| {
-                    let a = self.model.steering(th);
+                    self.model.steering_into(th, &mut a);
                     let z: Complex<f64> = a.iter().zip(&v).map(|(x, y)| x.conj() * y).sum();
                     z.norm_sqr()
                 });

@@ -210,6 +210,9 @@ pub struct EstimateArgs {
     /// output directory for log.jsonl (created if missing)
     #[arg(long)]
     pub out: PathBuf,
+    /// leave out tracks followed for less than this many seconds (first to last detection)
+    #[arg(long, default_value_t = echomap_agent::radio::estimate::DEFAULT_MIN_TRACK_S)]
+    pub min_track_s: f64,
 }
 
 #[derive(Debug, Args)]
@@ -563,8 +566,15 @@ pub fn run(cli: Cli) -> Result<()> {
         }
         Command::Run(a) => run_command(&a),
         Command::Estimate(a) => {
+            if !(a.min_track_s.is_finite() && a.min_track_s >= 0.0) {
+                bail!("--min-track-s must be a number of seconds ≥ 0");
+            }
             let cir = Cir::read(&a.cir_dir)?;
-            let (log, stats) = front_end(&cir, &FrontEndConfig::default());
+            let cfg = FrontEndConfig {
+                min_track_s: a.min_track_s,
+                ..FrontEndConfig::default()
+            };
+            let (log, stats) = front_end(&cir, &cfg);
             files::write_log(&log, &a.out)?;
             let log_path = a.out.join("log.jsonl");
             let truth = a.cir_dir.join("truth.json");
@@ -572,6 +582,12 @@ pub fn run(cli: Cli) -> Result<()> {
                 std::fs::copy(&truth, a.out.join("truth.json"))
                     .with_context(|| format!("copying {}", truth.display()))?;
             }
+            plot::draw_waterfall(
+                &cir,
+                stats.noise_variance,
+                &log,
+                &a.out.join("waterfall.png"),
+            )?;
             println!(
                 "estimated {} snapshots: {:.1} paths per snapshot, {} tracks, noise variance {:.3} → {}",
                 stats.snapshots,
