@@ -206,6 +206,15 @@ pub struct FilterConfig {
     pub export_position_floor_m: f64,
 }
 
+impl FilterConfig {
+    /// Variance of the heading noise over one step of `dt` seconds turning at `gyro` rad/s:
+    /// `σ_t²·Δt + σ_r²·|ω·Δt|` (rad²).
+    pub fn heading_step_variance(&self, gyro: f64, dt: f64) -> f64 {
+        self.heading_noise_rad_per_sqrt_s.powi(2) * dt
+            + self.heading_noise_rad_per_sqrt_rad.powi(2) * (gyro * dt).abs()
+    }
+}
+
 impl Default for FilterConfig {
     fn default() -> Self {
         FilterConfig {

@@ -151,8 +151,7 @@ impl Particle {
         if dt <= 0.0 {
             return;
         }
-        let var_h = cfg.heading_noise_rad_per_sqrt_s.powi(2) * dt
-            + cfg.heading_noise_rad_per_sqrt_rad.powi(2) * (gyro * dt).abs();
+        let var_h = cfg.heading_step_variance(gyro, dt);
         let sigma_h = var_h.sqrt();
         let kappa = if sigma_h > 0.0 {
             1.0 / (sigma_h * sigma_h)

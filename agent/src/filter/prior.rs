@@ -536,8 +536,7 @@ impl PriorTracker {
         } else {
             cfg.speed_noise_mps_per_sqrt_s.powi(2) * dt
         };
-        let var_h = cfg.heading_noise_rad_per_sqrt_s.powi(2) * dt
-            + cfg.heading_noise_rad_per_sqrt_rad.powi(2) * (snap.gyro * dt).abs();
+        let var_h = cfg.heading_step_variance(snap.gyro, dt);
         let u = Vector3::new(heading.cos(), heading.sin(), 0.0);
         let f = Matrix3::new(
             1.0,

@@ -55,8 +55,7 @@ impl Step {
         speed: Option<f64>,
         dt: f64,
     ) -> Self {
-        let var_h = cfg.heading_noise_rad_per_sqrt_s.powi(2) * dt
-            + cfg.heading_noise_rad_per_sqrt_rad.powi(2) * (gyro * dt).abs();
+        let var_h = cfg.heading_step_variance(gyro, dt);
         let (speed, clamp, sigma_v) = match speed {
             Some(v) => (v, false, cfg.speed_measurement_std_mps),
             None => (from.speed, true, cfg.speed_noise_mps_per_sqrt_s * dt.sqrt()),
