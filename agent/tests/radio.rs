@@ -247,18 +247,17 @@ mod cir_files {
     }
 }
 
-/// The front end on a simulated channel: the paths that stand apart from the others and are
-/// as strong as the simulator's estimator model needs to report them are found again in
-/// their sampled channel, close to where they are, under few track ids.
-#[test]
-fn the_front_end_finds_the_simulated_paths_in_their_sampled_channel() {
+/// The front end on the first 15 s of a simulated channel of the urban reference track: the
+/// paths that stand apart from the others (SNR ≥ 0 dB) and how many of them it finds within
+/// 0.5 m and 0.1 rad, with the log it wrote.
+fn front_end_on_urban(
+    scenario: &echomap_agent::sim::Scenario,
+) -> (usize, usize, echomap_shared::log::MeasurementLog, usize) {
     use echomap_agent::radio::estimate::{FrontEndConfig, front_end};
-    use echomap_agent::sim::builtin::builtin;
     use echomap_agent::sim::channel::synthesize;
     use echomap_agent::sim::simulate::{SimOptions, simulate_paths};
-    let scenario = builtin("urban").unwrap();
     let (sim, paths) = simulate_paths(
-        &scenario,
+        scenario,
         "reference",
         SimOptions {
             seed: 3,
@@ -268,10 +267,11 @@ fn the_front_end_finds_the_simulated_paths_in_their_sampled_channel() {
     )
     .unwrap();
     let paths = paths.unwrap();
-    let mut cir = synthesize(&scenario, &sim.log, &paths, true, 3);
+    let mut cir = synthesize(scenario, &sim.log, &paths, true, 3);
+    let elements = cir.meta.elements_m.len();
     // the first 15 s keep the test short
     let keep = 150;
-    let per = cir.meta.elements_m.len() * cir.meta.samples;
+    let per = elements * cir.meta.samples;
     cir.meta.snapshots.truncate(keep);
     cir.data.truncate(keep * per);
     // every track, also those followed for less than the log's confirmation time: what the
@@ -301,13 +301,41 @@ fn the_front_end_finds_the_simulated_paths_in_their_sampled_channel() {
         }
     }
     println!(
-        "front end, urban reference, first {keep} snapshots: {found}/{apart} paths that stand apart (SNR ≥ 0 dB) found within 0.5 m and 0.1 rad; {:.1} paths per snapshot, {} tracks",
+        "front end, urban reference, first {keep} snapshots, {elements} elements: {found}/{apart} paths that stand apart (SNR ≥ 0 dB) found within 0.5 m and 0.1 rad; {:.1} paths per snapshot, {} tracks",
         stats.paths_per_snapshot, stats.tracks
     );
+    (found, apart, log, elements)
+}
+
+/// The front end on a simulated channel: the paths that stand apart from the others and are
+/// as strong as the simulator's estimator model needs to report them are found again in
+/// their sampled channel, close to where they are, under few track ids.
+#[test]
+fn the_front_end_finds_the_simulated_paths_in_their_sampled_channel() {
+    let scenario = echomap_agent::sim::builtin::builtin("urban").unwrap();
+    let (found, apart, log, elements) = front_end_on_urban(&scenario);
+    assert_eq!(elements, 9);
     // measured 50/60 (2026-12-06); the guard leaves room for the multipath that
     // interferes with a path from more than one sample away
     assert!(apart >= 50, "{apart}");
     assert!(found * 4 >= apart * 3, "{found}/{apart}");
     let sensor = log.header.sensor.expect("the front end states its noise");
     assert!(sensor.distance_m.unwrap().at_0db > 0.0 && sensor.aoa_rad.unwrap().at_0db > 0.0);
+}
+
+/// The same with a uniform circular array of 8 elements: the simulator lays the elements out
+/// on the circle, and the front end reads the layout from the CIR and finds the paths as well.
+#[test]
+fn the_front_end_finds_the_paths_with_a_circular_array_too() {
+    use echomap_agent::sim::scenario::ArrayGeometry;
+    let mut scenario = echomap_agent::sim::builtin::builtin("urban").unwrap();
+    scenario.receiver.array_geometry = ArrayGeometry::Circular;
+    scenario.receiver.array_elements = 8;
+    scenario.validate().unwrap();
+    let (found, apart, log, elements) = front_end_on_urban(&scenario);
+    assert_eq!(elements, 8);
+    assert!(apart >= 50, "{apart}");
+    assert!(found * 4 >= apart * 3, "{found}/{apart}");
+    let name = log.header.sensor.and_then(|s| s.name).unwrap_or_default();
+    assert!(!name.is_empty(), "the front end names its sensor");
 }

@@ -5,14 +5,13 @@
 //! Per path: amplitude `|α|² = γ·G` (γ its per-sample SNR with fading, G the estimator's
 //! `integration_samples`: the correlator's gain, so that the CIR's noise has variance 1),
 //! carrier phase `−2π·d/λ` from the path's length, the array response of the scenario's
-//! receiver (a square grid at half-wavelength spacing, as its Cramér–Rao terms assume; one
-//! element for ToA only) and the sinc pulse of the bandwidth sampled at the bandwidth. The
+//! receiver (a square grid or a circle, neighbours half a wavelength apart, as its Cramér–Rao
+//! terms assume; one element for ToA only) and the sinc pulse of the bandwidth sampled at the bandwidth. The
 //! delay window starts at 0 m and ends 16 samples after the longest path.
 
 use super::SPEED_OF_LIGHT;
 use super::scenario::Scenario;
 use super::simulate::{ChannelPath, STREAM_CIR_NOISE, rng};
-use crate::radio::array::uniform_square;
 use crate::radio::cir::{CIR_FORMAT, Cir, CirMeta, CirSnapshot};
 use echomap_shared::log::MeasurementLog;
 use nalgebra::Complex;
@@ -31,12 +30,7 @@ pub fn synthesize(
     seed: u64,
 ) -> Cir {
     let wavelength_m = scenario.wavelength_m();
-    let elements_m = if aoa {
-        let side = f64::from(scenario.receiver.array_elements).sqrt().round() as usize;
-        uniform_square(side.max(1), wavelength_m / 2.0)
-    } else {
-        vec![[0.0, 0.0]]
-    };
+    let elements_m = scenario.array_elements_m(aoa);
     let fs = scenario.bandwidth_hz;
     let metres_per_sample = SPEED_OF_LIGHT / fs;
     let longest = paths

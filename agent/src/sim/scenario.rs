@@ -2,6 +2,7 @@
 //! Every field is documented in docs/formats.md; unknown fields and invalid values are rejected
 //! with a message naming the field.
 
+use crate::radio::array::{uniform_circular, uniform_square};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
@@ -84,13 +85,25 @@ pub struct Scatterer {
     pub scattering_loss_db: f64,
 }
 
+/// The layout of the receiver's antenna elements (neighbours λ/2 apart).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ArrayGeometry {
+    /// a uniform square grid (uniform rectangular array, URA)
+    Square,
+    /// a uniform circular array (UCA)
+    Circular,
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Receiver {
     /// whether the array estimates angles of arrival (false: single antenna, ToA only)
     pub aoa: bool,
-    /// antenna elements in a uniform square grid at half-wavelength spacing (a square number)
+    /// antenna elements: a square number for a square grid, at least 3 for a circle
     pub array_elements: u32,
+    /// how the elements are laid out, neighbours half a wavelength apart
+    pub array_geometry: ArrayGeometry,
     /// receiver noise figure (dB); noise power = −174 dBm/Hz + 10·log10(B) + NF
     pub noise_figure_db: f64,
     /// angular resolution (rad); default 2/√M (the beamwidth of a √M·λ/2 aperture)
@@ -102,6 +115,7 @@ impl Default for Receiver {
         Receiver {
             aoa: true,
             array_elements: 9,
+            array_geometry: ArrayGeometry::Square,
             noise_figure_db: 7.0,
             angular_resolution_rad: None,
         }
@@ -221,11 +235,37 @@ impl Scenario {
             })
     }
 
-    /// Angular resolution in use (rad).
+    /// Angular resolution in use (rad); default the beamwidth `λ/D` of the array's aperture
+    /// `D` (a square grid: √M·λ/2; a circle: its diameter).
     pub fn angular_resolution_rad(&self) -> f64 {
-        self.receiver
-            .angular_resolution_rad
-            .unwrap_or_else(|| 2.0 / f64::from(self.receiver.array_elements).sqrt())
+        self.receiver.angular_resolution_rad.unwrap_or_else(|| {
+            let m = f64::from(self.receiver.array_elements);
+            match self.receiver.array_geometry {
+                ArrayGeometry::Square => 2.0 / m.sqrt(),
+                // M elements λ/2 apart on a circle of diameter λ/(2·sin(π/M))
+                ArrayGeometry::Circular => 2.0 * (std::f64::consts::PI / m).sin(),
+            }
+        })
+    }
+
+    /// Element positions of the receiver's array in the body frame (m), neighbours λ/2 apart
+    /// (one element at the origin for ToA only).
+    pub fn array_elements_m(&self, aoa: bool) -> Vec<[f64; 2]> {
+        let spacing = self.wavelength_m() / 2.0;
+        let m = self.receiver.array_elements;
+        if !aoa {
+            return vec![[0.0, 0.0]];
+        }
+        match self.receiver.array_geometry {
+            ArrayGeometry::Square => {
+                let side = f64::from(m).sqrt().round() as usize;
+                uniform_square(side.max(1), spacing)
+            }
+            ArrayGeometry::Circular => {
+                let radius = spacing / (2.0 * (std::f64::consts::PI / f64::from(m)).sin());
+                uniform_circular(m as usize, radius)
+            }
+        }
     }
 
     pub fn wavelength_m(&self) -> f64 {
@@ -294,11 +334,20 @@ impl Scenario {
         }
         let m = self.receiver.array_elements;
         let side = f64::from(m).sqrt().round() as u32;
-        if m == 0 || side * side != m {
-            return Err(invalid(
-                "receiver.array_elements",
-                format!("must be a square number ≥ 1, got {m}"),
-            ));
+        match self.receiver.array_geometry {
+            ArrayGeometry::Square if m == 0 || side * side != m => {
+                return Err(invalid(
+                    "receiver.array_elements",
+                    format!("a square array needs a square number ≥ 1 of elements, got {m}"),
+                ));
+            }
+            ArrayGeometry::Circular if m < 3 => {
+                return Err(invalid(
+                    "receiver.array_elements",
+                    format!("a circular array needs at least 3 elements, got {m}"),
+                ));
+            }
+            _ => {}
         }
         if self.receiver.aoa && m < 4 {
             return Err(invalid(

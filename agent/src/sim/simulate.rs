@@ -11,8 +11,9 @@
 //! - noise: Gaussian, with CRLB-shaped standard deviations for an estimator integrating
 //!   `N` samples at SNR γ (Kay, Fundamentals of Statistical Signal Processing I, §3):
 //!   `σ_d = √(σ_d,floor² + (c / (2π·β·√(2Nγ)))²)`, `β = B/√12` the rms bandwidth of a flat
-//!   spectrum; `σ_θ = √(σ_θ,floor² + 1/(2Nγ·Σₘ(k·aₘ)²))` for a square array with
-//!   half-wavelength spacing (`Σₘ(k·aₘ)²` is isotropic for a square grid). The floors stand
+//!   spectrum; `σ_θ = √(σ_θ,floor² + 1/(2Nγ·Σₘ(k·aₘ)²))` with `aₘ` element m's offset from the
+//!   array's centre across the direction of arrival (isotropic for a square grid and for a
+//!   circle, neighbours half a wavelength apart). The floors stand
 //!   for model mismatch and calibration, which dominate at high SNR in practice.
 //! - tracks: a component keeps its track id while it is reported in consecutive snapshots;
 //!   once it is missing (blocked, faded, unresolved, or dropped at random with rate
@@ -25,7 +26,7 @@
 
 use super::SPEED_OF_LIGHT;
 use super::raytrace::{Geometry, Interaction, Path, sequences, trace_all};
-use super::scenario::{Scenario, ScenarioError, Track};
+use super::scenario::{ArrayGeometry, Scenario, ScenarioError, Track};
 use super::trajectory::Trajectory;
 use echomap_shared::Transform2;
 use echomap_shared::log::{
@@ -121,7 +122,11 @@ impl Scenario {
                 self.bandwidth_hz / 1e6,
                 e.integration_samples,
                 if aoa {
-                    format!("{}-element array", self.receiver.array_elements)
+                    let layout = match self.receiver.array_geometry {
+                        ArrayGeometry::Square => "",
+                        ArrayGeometry::Circular => "circular ",
+                    };
+                    format!("{}-element {layout}array", self.receiver.array_elements)
                 } else {
                     "single antenna".to_string()
                 }
@@ -146,12 +151,25 @@ impl Scenario {
         let gamma = 10f64.powf(snr_db / 10.0) * e.integration_samples;
         let beta = self.bandwidth_hz / 12f64.sqrt();
         let crlb_d = SPEED_OF_LIGHT / (2.0 * std::f64::consts::PI * beta * (2.0 * gamma).sqrt());
-        let side = f64::from(self.receiver.array_elements).sqrt();
-        // Σ over a side×side grid of (π·offset)² per axis, offsets in half-wavelengths.
-        let axis: f64 = (0..side as usize)
-            .map(|i| (i as f64 - (side - 1.0) / 2.0).powi(2))
-            .sum();
-        let aperture = std::f64::consts::PI.powi(2) * side * axis;
+        // Fisher information of the angle per unit 2Nγ: Σₘ (k·(rₘ − r̄)·u⊥(θ))², the same in
+        // every direction for a square grid and for a circle; offsets in half-wavelengths, so
+        // that k·offset = π·offset
+        let m = f64::from(self.receiver.array_elements);
+        let aperture = match self.receiver.array_geometry {
+            ArrayGeometry::Square => {
+                // Σ over a side×side grid of (π·offset)² per axis
+                let side = m.sqrt();
+                let axis: f64 = (0..side as usize)
+                    .map(|i| (i as f64 - (side - 1.0) / 2.0).powi(2))
+                    .sum();
+                std::f64::consts::PI.powi(2) * side * axis
+            }
+            ArrayGeometry::Circular => {
+                // M elements on a circle of radius 1/(2·sin(π/M)) half-wavelengths: M·(π·R)²/2
+                let radius = 1.0 / (2.0 * (std::f64::consts::PI / m).sin());
+                0.5 * m * (std::f64::consts::PI * radius).powi(2)
+            }
+        };
         let crlb_a = if aperture > 0.0 {
             (1.0 / (2.0 * gamma * aperture)).sqrt()
         } else {

@@ -333,6 +333,13 @@ fn bad_scenarios_name_the_field() {
             Box::new(|v| v["receiver"]["array_elements"] = serde_json::json!(8)),
         ),
         (
+            "receiver.array_elements",
+            Box::new(|v| {
+                v["receiver"]["array_geometry"] = serde_json::json!("circular");
+                v["receiver"]["array_elements"] = serde_json::json!(2);
+            }),
+        ),
+        (
             "estimator.max_order",
             Box::new(|v| v["estimator"]["max_order"] = serde_json::json!(3)),
         ),
@@ -405,4 +412,61 @@ fn the_simulators_sensor_profile_states_its_noise_as_bounds() {
     narrow.bandwidth_hz = 20e6;
     let nd = narrow.sensor_profile(true).distance_m.unwrap();
     assert!(nd.at_0db > 4.0 * d.at_0db && nd.at_0db <= 0.75, "{nd:?}");
+}
+
+#[test]
+fn the_simulators_angle_noise_is_the_cramer_rao_bound_of_its_array() {
+    use super::scenario::ArrayGeometry;
+    use crate::radio::array::ArrayModel;
+    // the deterministic angle CRB of one path in white noise of unit variance per element
+    // and sample: 1 / (2·γ·‖∂a/∂θ − (aᴴ∂a/∂θ / M)·a‖²), γ the post-integration SNR — what the
+    // simulator draws must be this for any layout, at any angle
+    for (geometry, elements) in [
+        (ArrayGeometry::Square, 9),
+        (ArrayGeometry::Square, 16),
+        (ArrayGeometry::Circular, 8),
+        (ArrayGeometry::Circular, 5),
+    ] {
+        let mut s = super::builtin::urban();
+        s.receiver.array_geometry = geometry;
+        s.receiver.array_elements = elements;
+        s.estimator.aoa_floor_rad = 0.0;
+        s.validate().unwrap();
+        let model = ArrayModel {
+            elements_m: s.array_elements_m(true),
+            wavelength_m: s.wavelength_m(),
+            rho: 1.0,
+        };
+        assert_eq!(model.elements(), elements as usize);
+        let gamma = 10f64.powf(0.1 * 10.0) * s.estimator.integration_samples;
+        for theta in [0.0, 0.4, 1.3, -2.5] {
+            let a = model.steering(theta);
+            let da = model.steering_derivative(theta);
+            let m = a.len() as f64;
+            let proj = a
+                .iter()
+                .zip(&da)
+                .map(|(x, y)| x.conj() * y)
+                .sum::<nalgebra::Complex<f64>>()
+                / m;
+            let info: f64 = a
+                .iter()
+                .zip(&da)
+                .map(|(x, y)| (y - proj * x).norm_sqr())
+                .sum();
+            let crb = (1.0 / (2.0 * gamma * info)).sqrt();
+            let (_, drawn) = s.noise_std(10.0);
+            assert!(
+                (drawn / crb - 1.0).abs() < 1e-9,
+                "{geometry:?} {elements}: drawn {drawn}, CRB {crb} at θ = {theta}"
+            );
+        }
+    }
+    // neighbours of the circle are half a wavelength apart
+    let mut s = super::builtin::urban();
+    s.receiver.array_geometry = ArrayGeometry::Circular;
+    s.receiver.array_elements = 8;
+    let e = s.array_elements_m(true);
+    let gap = (e[1][0] - e[0][0]).hypot(e[1][1] - e[0][1]);
+    assert!((gap - s.wavelength_m() / 2.0).abs() < 1e-12, "{gap}");
 }
