@@ -85,6 +85,12 @@ pub struct Scatterer {
     pub scattering_loss_db: f64,
 }
 
+/// The radius, in half-wavelengths, of a circle of `m` elements whose neighbours are half a
+/// wavelength apart: `1/(2·sin(π/m))`.
+pub fn circle_radius_in_half_wavelengths(m: u32) -> f64 {
+    1.0 / (2.0 * (std::f64::consts::PI / f64::from(m)).sin())
+}
+
 /// The layout of the receiver's antenna elements (neighbours λ/2 apart).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -242,8 +248,10 @@ impl Scenario {
             let m = f64::from(self.receiver.array_elements);
             match self.receiver.array_geometry {
                 ArrayGeometry::Square => 2.0 / m.sqrt(),
-                // M elements λ/2 apart on a circle of diameter λ/(2·sin(π/M))
-                ArrayGeometry::Circular => 2.0 * (std::f64::consts::PI / m).sin(),
+                // λ over the circle's diameter 2·R·λ/2
+                ArrayGeometry::Circular => {
+                    1.0 / circle_radius_in_half_wavelengths(self.receiver.array_elements)
+                }
             }
         })
     }
@@ -262,8 +270,7 @@ impl Scenario {
                 uniform_square(side.max(1), spacing)
             }
             ArrayGeometry::Circular => {
-                let radius = spacing / (2.0 * (std::f64::consts::PI / f64::from(m)).sin());
-                uniform_circular(m as usize, radius)
+                uniform_circular(m as usize, spacing * circle_radius_in_half_wavelengths(m))
             }
         }
     }

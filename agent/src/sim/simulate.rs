@@ -26,7 +26,9 @@
 
 use super::SPEED_OF_LIGHT;
 use super::raytrace::{Geometry, Interaction, Path, sequences, trace_all};
-use super::scenario::{ArrayGeometry, Scenario, ScenarioError, Track};
+use super::scenario::{
+    ArrayGeometry, Scenario, ScenarioError, Track, circle_radius_in_half_wavelengths,
+};
 use super::trajectory::Trajectory;
 use echomap_shared::Transform2;
 use echomap_shared::log::{
@@ -166,7 +168,7 @@ impl Scenario {
             }
             ArrayGeometry::Circular => {
                 // M elements on a circle of radius 1/(2·sin(π/M)) half-wavelengths: M·(π·R)²/2
-                let radius = 1.0 / (2.0 * (std::f64::consts::PI / m).sin());
+                let radius = circle_radius_in_half_wavelengths(self.receiver.array_elements);
                 0.5 * m * (std::f64::consts::PI * radius).powi(2)
             }
         };
