@@ -112,7 +112,8 @@ pub struct Receiver {
     pub array_geometry: ArrayGeometry,
     /// receiver noise figure (dB); noise power = −174 dBm/Hz + 10·log10(B) + NF
     pub noise_figure_db: f64,
-    /// angular resolution (rad); default 2/√M (the beamwidth of a √M·λ/2 aperture)
+    /// angular resolution (rad); default the beamwidth λ/D of the array's aperture D
+    /// ([`Scenario::angular_resolution_rad`])
     pub angular_resolution_rad: Option<f64>,
 }
 
