@@ -38,11 +38,14 @@ pub struct TruthCols {
     /// normalized estimation error squared of the truth under the particle cloud
     /// ([`crate::filter::Filter::position_nees`]); ≤ 5.991 inside the 95 % ellipse
     pub nees: f64,
+    /// ln p(z_t | true track) − ln p(z_t | particles): the snapshot's evidence for the true
+    /// track, mapped by itself, over the filter's ([`crate::filter::truth`])
+    pub truth_ll_ratio: f64,
 }
 
 pub fn track_csv(rows: &[TrackRow]) -> String {
     let mut s = String::from(
-        "t,x,y,traveled_m,true_x,true_y,mae_m,rmse_m,err_m,nees,ess,transmitters,components,log_evidence,model\n",
+        "t,x,y,traveled_m,true_x,true_y,mae_m,rmse_m,err_m,nees,ess,transmitters,components,log_evidence,model,truth_ll_ratio\n",
     );
     for r in rows {
         let truth = match r.truth {
@@ -57,8 +60,12 @@ pub fn track_csv(rows: &[TrackRow]) -> String {
             Some(false) => "alone",
             None => "",
         };
+        let ratio = r
+            .truth
+            .map(|c| c.truth_ll_ratio.to_string())
+            .unwrap_or_default();
         s.push_str(&format!(
-            "{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{},{},{},{},{},{}\n",
             r.t,
             r.x,
             r.y,
@@ -68,7 +75,8 @@ pub fn track_csv(rows: &[TrackRow]) -> String {
             r.transmitters,
             r.components,
             r.log_evidence,
-            model
+            model,
+            ratio
         ));
     }
     s

@@ -37,6 +37,14 @@ pub struct RunSummary {
     pub coverage95: f64,
     /// detections of bound tracks decided to be gross errors (`measurement.outlier_probability`)
     pub outlier_detections: usize,
+    /// the true track run through the filter's model (`filter::truth`): Σ_t ln p(z_t | true
+    /// track) − ln p(z_t | particles). Positive: the data favour the truth and the filter lost
+    /// it (an estimator failure); negative: the data favour the filter's wrong track (the
+    /// radio model misfits the data)
+    pub truth_log_bayes_factor: Option<f64>,
+    /// normalized innovation squared per measurement dimension of the true track's
+    /// detections of transmitters it had mapped: about 1 when the model fits the data
+    pub truth_nis_per_dim: Option<f64>,
     /// with a prior map: log time (s) of the first accepted match, if any
     pub prior_matched_at_s: Option<f64>,
     /// with a prior map: particle-weighted number of transmitters taken over from it
@@ -89,6 +97,8 @@ pub fn summarize(out: &RunOutput, truth: &GroundTruth, log: &MeasurementLog) -> 
         dead_reckoning_ate_m: dr_ate,
         coverage95: coverage95(&out.rows),
         outlier_detections: out.filter.outlier_detections(),
+        truth_log_bayes_factor: out.filter.truth_summary().map(|t| t.log_bayes_factor),
+        truth_nis_per_dim: out.filter.truth_summary().and_then(|t| t.nis_per_dim),
         prior_matched_at_s: out.matches.iter().find(|m| m.accepted).map(|m| m.t),
         prior_transmitters_used: out.had_prior.then(|| out.filter.prior_transmitters_used()),
     }
@@ -226,6 +236,17 @@ pub fn print_summary(out: &RunOutput, truth: Option<&GroundTruth>, log: &Measure
             s.ate_m,
             100.0 * s.coverage95
         );
+        if let Some(bf) = s.truth_log_bayes_factor {
+            println!(
+                "the true track under the filter's model: ln Bayes factor {bf:+.1} against the filter's ({}), NIS per dimension {:.2}",
+                if bf >= 0.0 {
+                    "the data favour the truth: the filter lost it"
+                } else {
+                    "the data favour the filter's track: the model misfits them"
+                },
+                s.truth_nis_per_dim.unwrap_or(f64::NAN)
+            );
+        }
         if let (Some(m), Some(f)) = (s.dead_reckoning_mean_m, s.dead_reckoning_final_m) {
             println!(
                 "dead reckoning (gyro + speed only): mean error {m:.2} m, final {f:.2} m, ATE {:.2} m",

@@ -2,6 +2,7 @@
 
 use crate::eval::{TrackRow, TruthCols};
 use crate::filter::export::export_map;
+use crate::filter::model::Pose;
 use crate::filter::prior::MatchEvent;
 use crate::filter::{Filter, FilterConfig, PriorTracker};
 use anyhow::Result;
@@ -70,6 +71,15 @@ pub fn run_filter_with_prior(
     let mut rows = Vec::with_capacity(log.snapshots.len());
     let mut true_traveled = 0.0;
     for (k, snap) in log.snapshots.iter().enumerate() {
+        if let Some(t) = truth {
+            let p = &t.poses[k];
+            filter.set_true_pose(Pose {
+                x: p.x,
+                y: p.y,
+                heading: p.heading_rad,
+                speed: p.speed_mps,
+            });
+        }
         let stats = filter.step(snap);
         if let Some(tr) = tracker.as_mut() {
             let update = tr.after_step(&filter, snap)?;
@@ -93,6 +103,7 @@ pub fn run_filter_with_prior(
                 rmse_m,
                 err_m: (stats.x - p.x).hypot(stats.y - p.y),
                 nees: filter.position_nees(p.x, p.y),
+                truth_ll_ratio: stats.truth_ll_ratio.unwrap_or(f64::NAN),
             }
         });
         rows.push(TrackRow {

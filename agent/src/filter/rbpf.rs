@@ -11,7 +11,8 @@ use super::config::FilterConfig;
 use super::model::Pose;
 use super::particle::{Identity, Particle, TxState};
 use super::prior_map::Prior;
-use super::update::{Meas, log_sum_exp, update_mixture};
+use super::truth::{TruthSummary, TruthTrack};
+use super::update::{Meas, log_sum_exp};
 use super::visibility::Visibility;
 use echomap_shared::log::{Measurement, Snapshot};
 use nalgebra::Point2;
@@ -38,6 +39,10 @@ pub struct StepStats {
     /// likelihood of its detections (association included), plus for every fusion of a prior
     /// transmitter its Occam factor (see `Filter::fuse_prior`)
     pub log_evidence: f64,
+    /// with the true pose given (`Filter::set_true_pose`): ln p(z_t | true track) −
+    /// ln p(z_t | the particles), the snapshot's evidence for the true track, mapped by itself,
+    /// over the filter's (see `TruthTrack`)
+    pub truth_ll_ratio: Option<f64>,
 }
 
 #[derive(Debug)]
@@ -59,11 +64,30 @@ pub struct Filter {
     pub(super) prior: Option<Arc<Prior>>,
     /// detections of bound tracks decided to be gross errors so far
     pub(super) outliers: usize,
+    /// the true track run through the same model, when the true poses are given
+    pub(super) truth: Option<TruthTrack>,
 }
 
 /// A bound track's detection as one particle saw it: the track, the log likelihood and the
 /// transmitter before the update (restored if the detection turns out to be a gross error).
-type Detection = (u64, f64, Arc<TxState>);
+pub(super) type Detection = (u64, f64, Arc<TxState>);
+
+/// What every particle sees of one snapshot (`Particle::observe`).
+pub(super) struct StepInput<'a> {
+    pub(super) cfg: &'a FilterConfig,
+    pub(super) vis: &'a Visibility,
+    pub(super) prior: Option<&'a Prior>,
+    /// tracks alive now
+    pub(super) current: &'a BTreeSet<u64>,
+    /// known tracks first, then new ones: (track, measurement, identity)
+    pub(super) meas: &'a [(u64, Meas, u32)],
+    pub(super) gyro: f64,
+    pub(super) speed: Option<f64>,
+    pub(super) dt: f64,
+    pub(super) merge_now: bool,
+    /// bound tracks' detections wait for the population's gross-error decision
+    pub(super) robust: bool,
+}
 
 impl Filter {
     /// A filter whose particles all start at the local origin, heading +x, at the configured
@@ -106,6 +130,7 @@ impl Filter {
             log_evidence: 0.0,
             prior: None,
             outliers: 0,
+            truth: None,
         }
     }
     /// whether the log's measurements carry an angle of arrival
@@ -132,6 +157,21 @@ impl Filter {
 
     pub fn visibility(&self) -> &Visibility {
         &self.visibility
+    }
+
+    /// Gives the true pose of the snapshot about to be processed: the true track
+    /// (`super::truth`) follows it through the filter's model. Call before every `step`
+    /// from the first on; it changes nothing in the particles or any estimate.
+    pub fn set_true_pose(&mut self, pose: Pose) {
+        match self.truth.as_mut() {
+            Some(tt) => tt.pose = Some(pose),
+            None => self.truth = Some(TruthTrack::new(&self.particles[0], pose)),
+        }
+    }
+
+    /// What the true track says about the run so far; None without true poses.
+    pub fn truth_summary(&self) -> Option<TruthSummary> {
+        self.truth.as_ref().map(TruthTrack::summary)
     }
 
     /// Detections of bound tracks decided to be gross errors so far.
@@ -287,78 +327,52 @@ impl Filter {
         } else {
             Vec::new()
         };
-        let detections: Vec<Vec<Detection>> = {
-            let cfg = &self.cfg;
-            let vis = &self.visibility;
-            let prior = self.prior.as_deref();
-            let speed = snap.speed;
-            let gyro = snap.gyro;
-            self.particles
-                .par_iter_mut()
-                .zip(rngs)
-                .map(|(p, mut rng)| {
-                    let mut detections = Vec::new();
-                    p.bound.retain(|(t, _)| current.contains(t));
-                    p.move_by(cfg, gyro, speed, dt, &meas, &mut rng);
-                    if !p.pending.is_empty() {
-                        p.resolve_pending(cfg, &current, &mut rng, |_| false);
-                    }
-                    let mut updated = vec![false; p.txs.len()];
-                    for (track, m, identity) in &meas {
-                        if let Some(&(_, idx)) = p.bound.iter().find(|(t, _)| t == track) {
-                            // a track whose association is still open carries its evidence
-                            // into that decision and weights at once
-                            let saved = (robust && !p.pending.iter().any(|pd| pd.track == *track))
-                                .then(|| Arc::clone(&p.txs[idx as usize]));
-                            let tx = Arc::make_mut(&mut p.txs[idx as usize]);
-                            let ll = update_mixture(&mut tx.comps, m, &p.pose, cfg, merge_now);
-                            match saved {
-                                Some(saved) => detections.push((*track, ll, saved)),
-                                None => p.log_w += ll,
-                            }
-                            if !updated[idx as usize] {
-                                tx.reliability_m += p.pose.speed.abs() * dt;
-                                updated[idx as usize] = true;
-                            }
-                            if let Some(pd) = p.pending.iter_mut().find(|pd| pd.track == *track) {
-                                pd.seen += 1;
-                                pd.ev_new += ll;
-                                for c in &mut pd.cands {
-                                    c.ev +=
-                                        update_mixture(&mut c.comps, m, &p.pose, cfg, merge_now);
-                                }
-                            }
-                        } else {
-                            p.new_track(
-                                cfg,
-                                vis,
-                                prior,
-                                &current,
-                                *track,
-                                m,
-                                *identity,
-                                &mut rng,
-                                &mut updated,
-                                merge_now,
-                                dt,
-                            );
-                        }
-                    }
-                    if !p.pending.is_empty() {
-                        p.resolve_pending(cfg, &current, &mut rng, |pd| pd.seen >= pd.window);
-                    }
-                    detections
-                })
-                .collect()
+        let input = StepInput {
+            cfg: &self.cfg,
+            vis: &self.visibility,
+            prior: self.prior.as_deref(),
+            current: &current,
+            meas: &meas,
+            gyro: snap.gyro,
+            speed: snap.speed,
+            dt,
+            merge_now,
+            robust,
         };
-        if robust {
-            self.weigh_detections(detections, &w_before);
-        }
+        let detections: Vec<Vec<Detection>> = self
+            .particles
+            .par_iter_mut()
+            .zip(rngs)
+            .map(|(p, mut rng)| p.observe(&input, &mut rng, None))
+            .collect();
+        // the true track, when known, sees the snapshot as every particle does (its own
+        // stream after the particles' ones), from the true pose
+        let truth_detections = match self.truth.as_mut() {
+            Some(tt) => {
+                let mut rng = ChaCha8Rng::seed_from_u64(
+                    self.cfg.seed ^ (self.step as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+                );
+                rng.set_stream(u64::MAX);
+                Some(tt.observe(&input, &mut rng))
+            }
+            None => None,
+        };
+        let outliers = if robust {
+            self.weigh_detections(detections, &w_before)
+        } else {
+            BTreeSet::new()
+        };
         // Normalize, estimate, resample.
         let after = log_sum_exp(self.particles.iter().map(|p| p.log_w));
         if before.is_finite() {
             self.log_evidence += after - before;
         }
+        let truth_ll_ratio = match (self.truth.as_mut(), truth_detections) {
+            (Some(tt), Some(ds)) if before.is_finite() => {
+                Some(tt.settle(ds, &outliers, after - before))
+            }
+            _ => None,
+        };
         let w = self.weights_given(after);
         let ess = 1.0 / w.iter().map(|x| x * x).sum::<f64>();
         let (mut mx, mut my) = (0.0, 0.0);
@@ -408,6 +422,7 @@ impl Filter {
             components: ncomp,
             traveled_m: self.traveled,
             log_evidence: self.log_evidence,
+            truth_ll_ratio,
         }
     }
 
@@ -419,7 +434,11 @@ impl Filter {
     /// track); it then weights no particle and every particle's transmitter is restored to
     /// its state before the update. Deciding per particle instead, `(1 − ε)·Lᵢ + ε·λ`, excuses
     /// exactly the particles that are wrong and removes the pull back to the truth.
-    fn weigh_detections(&mut self, detections: Vec<Vec<Detection>>, w_before: &[f64]) {
+    fn weigh_detections(
+        &mut self,
+        detections: Vec<Vec<Detection>>,
+        w_before: &[f64],
+    ) -> BTreeSet<u64> {
         let eps = self.cfg.outlier_probability;
         let ln_outlier = (eps * self.cfg.outlier_density).ln() - (1.0 - eps).ln();
         let mut predictive: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
@@ -452,6 +471,7 @@ impl Filter {
                 }
             });
         self.outliers += outliers.len();
+        outliers
     }
 
     /// Visibility bookkeeping along the mean track: an identity is "seen" when the track the

@@ -1,0 +1,81 @@
+//! One particle's share of a snapshot (Gentner et al. 2016 Algorithm 1, lines 2–8 for one
+//! user particle): move, update every transmitter bound to a detected track, start or
+//! associate the new tracks, decide the associations that are due.
+
+use super::model::Pose;
+use super::particle::Particle;
+use super::rbpf::{Detection, StepInput};
+use super::update::update_mixture;
+use rand_chacha::ChaCha8Rng;
+use std::sync::Arc;
+
+impl Particle {
+    /// Processes one snapshot for this particle and returns the detections of bound tracks
+    /// that wait for the population's gross-error decision (`StepInput::robust`); every
+    /// other likelihood is already in the weight. With `at`, the particle is placed at that
+    /// pose after the motion step instead of where it moved (the true track,
+    /// `super::truth::TruthTrack`), and the motion step leaves its weight alone.
+    pub(super) fn observe(
+        &mut self,
+        inp: &StepInput,
+        rng: &mut ChaCha8Rng,
+        at: Option<Pose>,
+    ) -> Vec<Detection> {
+        let cfg = inp.cfg;
+        let mut detections = Vec::new();
+        self.bound.retain(|(t, _)| inp.current.contains(t));
+        let log_w = self.log_w;
+        self.move_by(cfg, inp.gyro, inp.speed, inp.dt, inp.meas, rng);
+        if let Some(pose) = at {
+            self.pose = pose;
+            self.log_w = log_w;
+        }
+        if !self.pending.is_empty() {
+            self.resolve_pending(cfg, inp.current, rng, |_| false);
+        }
+        let mut updated = vec![false; self.txs.len()];
+        for (track, m, identity) in inp.meas {
+            if let Some(&(_, idx)) = self.bound.iter().find(|(t, _)| t == track) {
+                // a track whose association is still open carries its evidence into that
+                // decision and weights at once
+                let saved = (inp.robust && !self.pending.iter().any(|pd| pd.track == *track))
+                    .then(|| Arc::clone(&self.txs[idx as usize]));
+                let tx = Arc::make_mut(&mut self.txs[idx as usize]);
+                let ll = update_mixture(&mut tx.comps, m, &self.pose, cfg, inp.merge_now);
+                match saved {
+                    Some(saved) => detections.push((*track, ll, saved)),
+                    None => self.log_w += ll,
+                }
+                if !updated[idx as usize] {
+                    tx.reliability_m += self.pose.speed.abs() * inp.dt;
+                    updated[idx as usize] = true;
+                }
+                if let Some(pd) = self.pending.iter_mut().find(|pd| pd.track == *track) {
+                    pd.seen += 1;
+                    pd.ev_new += ll;
+                    for c in &mut pd.cands {
+                        c.ev += update_mixture(&mut c.comps, m, &self.pose, cfg, inp.merge_now);
+                    }
+                }
+            } else {
+                self.new_track(
+                    cfg,
+                    inp.vis,
+                    inp.prior,
+                    inp.current,
+                    *track,
+                    m,
+                    *identity,
+                    rng,
+                    &mut updated,
+                    inp.merge_now,
+                    inp.dt,
+                );
+            }
+        }
+        if !self.pending.is_empty() {
+            self.resolve_pending(cfg, inp.current, rng, |pd| pd.seen >= pd.window);
+        }
+        detections
+    }
+}
