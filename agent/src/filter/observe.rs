@@ -7,6 +7,7 @@ use super::particle::Particle;
 use super::rbpf::{Detection, StepInput};
 use super::update::update_mixture;
 use rand_chacha::ChaCha8Rng;
+use std::collections::BTreeSet;
 use std::sync::Arc;
 
 impl Particle {
@@ -77,5 +78,22 @@ impl Particle {
             self.resolve_pending(cfg, inp.current, rng, |pd| pd.seen >= pd.window);
         }
         detections
+    }
+
+    /// Applies the population's gross-error decision to this particle's waiting detections
+    /// (`observe`): the transmitter of an outlier is restored to its state before the
+    /// detection, every other detection weighs.
+    pub(super) fn settle(&mut self, detections: Vec<Detection>, outliers: &BTreeSet<u64>) {
+        for (track, ll, saved) in detections {
+            if outliers.contains(&track) {
+                // the slot as bound now: an association decided later in the step may have
+                // removed a slot before it
+                if let Some(&(_, slot)) = self.bound.iter().find(|(t, _)| *t == track) {
+                    self.txs[slot as usize] = saved;
+                }
+            } else {
+                self.log_w += ll;
+            }
+        }
     }
 }

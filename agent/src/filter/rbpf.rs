@@ -457,19 +457,7 @@ impl Filter {
         self.particles
             .par_iter_mut()
             .zip(detections)
-            .for_each(|(p, ds)| {
-                for (track, ll, saved) in ds {
-                    if outliers.contains(&track) {
-                        // the slot as bound now: an association decided later in the step
-                        // may have removed a slot before it
-                        if let Some(&(_, slot)) = p.bound.iter().find(|(t, _)| *t == track) {
-                            p.txs[slot as usize] = saved;
-                        }
-                    } else {
-                        p.log_w += ll;
-                    }
-                }
-            });
+            .for_each(|(p, ds)| p.settle(ds, &outliers));
         self.outliers += outliers.len();
         outliers
     }

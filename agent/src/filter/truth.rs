@@ -102,17 +102,8 @@ impl TruthTrack {
         outliers: &BTreeSet<u64>,
         population_ll: f64,
     ) -> f64 {
-        let p = &mut self.particle;
-        for (track, ll, saved) in detections {
-            if outliers.contains(&track) {
-                if let Some(&(_, slot)) = p.bound.iter().find(|(t, _)| *t == track) {
-                    p.txs[slot as usize] = saved;
-                }
-            } else {
-                p.log_w += ll;
-            }
-        }
-        let ratio = p.log_w - population_ll;
+        self.particle.settle(detections, outliers);
+        let ratio = self.particle.log_w - population_ll;
         self.log_bayes_factor += ratio;
         ratio
     }
