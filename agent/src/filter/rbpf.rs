@@ -327,6 +327,7 @@ impl Filter {
         } else {
             Vec::new()
         };
+        let truth_rng = self.particle_rng(usize::MAX);
         let input = StepInput {
             cfg: &self.cfg,
             vis: &self.visibility,
@@ -347,16 +348,10 @@ impl Filter {
             .collect();
         // the true track, when known, sees the snapshot as every particle does (its own
         // stream after the particles' ones), from the true pose
-        let truth_detections = match self.truth.as_mut() {
-            Some(tt) => {
-                let mut rng = ChaCha8Rng::seed_from_u64(
-                    self.cfg.seed ^ (self.step as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
-                );
-                rng.set_stream(u64::MAX);
-                Some(tt.observe(&input, &mut rng))
-            }
-            None => None,
-        };
+        let truth_detections = self.truth.as_mut().map(|tt| {
+            let mut rng = truth_rng;
+            tt.observe(&input, &mut rng)
+        });
         let outliers = if robust {
             self.weigh_detections(detections, &w_before)
         } else {
