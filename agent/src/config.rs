@@ -5,11 +5,13 @@
 //! 1. the built-in default ([`RunConfig::default`]);
 //! 2. a preset, when one is asked for ([`Preset`]: typed constructors, e.g. how MRCLAM
 //!    robots use a crowd's map);
-//! 3. the log's sensor profile ([`SensorProfile`], written by the simulator or importer that
+//! 3. the noise laws measured from the log itself, when its sensor profile does not state
+//!    them ([`measured_profile`], `echomap_shared::calibration`);
+//! 4. the log's sensor profile ([`SensorProfile`], written by the simulator or importer that
 //!    made the log): noise laws, line of sight only, heading-dependent detection, odometry
 //!    noise;
-//! 4. a configuration file (`run --config FILE`, TOML or JSON; any subset of the keys);
-//! 5. flags (`--particles`, `--association`, `--set key=value`).
+//! 5. a configuration file (`run --config FILE`, TOML or JSON; any subset of the keys);
+//! 6. flags (`--particles`, `--association`, `--set key=value`).
 //!
 //! [`resolve`] records where each value came from, which `echomap-agent config print` shows.
 //! A key no layer knows, or a value of the wrong type or out of range, is an error that
@@ -18,6 +20,8 @@
 use crate::filter::{
     AnchorPose, Association, BPrior, FilterConfig, NoiseModel, PriorSettings, Proposal,
 };
+use echomap_shared::calibration;
+use echomap_shared::log::MeasurementLog;
 use echomap_shared::matching::{MatchConfig, MatchScore};
 use echomap_shared::sensor::SensorProfile;
 use serde::{Deserialize, Serialize};
@@ -446,6 +450,7 @@ pub enum ConfigError {
 pub enum Source {
     Default,
     Preset(Preset),
+    Measured,
     Sensor,
     File(String),
     Flag,
@@ -456,6 +461,7 @@ impl fmt::Display for Source {
         match self {
             Source::Default => write!(f, "default"),
             Source::Preset(p) => write!(f, "preset {}", p.name()),
+            Source::Measured => write!(f, "measured from the log"),
             Source::Sensor => write!(f, "sensor profile"),
             Source::File(path) => write!(f, "file {path}"),
             Source::Flag => write!(f, "flag"),
@@ -498,6 +504,8 @@ impl ConfigFile {
 #[derive(Debug, Clone, Default)]
 pub struct Layers<'a> {
     pub preset: Option<Preset>,
+    /// noise laws measured from the log ([`measured_profile`])
+    pub measured: Option<&'a SensorProfile>,
     pub sensor: Option<&'a SensorProfile>,
     pub file: Option<ConfigFile>,
     /// `(dotted key, value)` pairs given as flags, in order
@@ -510,6 +518,28 @@ pub struct Resolved {
     pub config: RunConfig,
     /// dotted key → source, for every leaf
     pub sources: BTreeMap<String, Source>,
+}
+
+/// The noise laws of `log`'s detections measured from its own tracks
+/// (`echomap_shared::calibration`), as a profile of the laws its sensor profile leaves out;
+/// `None` when the profile states them all or the log is too short to measure.
+pub fn measured_profile(log: &MeasurementLog) -> Option<SensorProfile> {
+    let stated = log.header.sensor.as_ref();
+    let has_distance = stated.is_some_and(|s| s.distance_m.is_some());
+    let has_aoa = !log.header.aoa || stated.is_some_and(|s| s.aoa_rad.is_some());
+    if has_distance && has_aoa {
+        return None;
+    }
+    let m = calibration::measure_noise(log)?;
+    Some(SensorProfile {
+        name: Some(format!(
+            "measured from {} second differences along the log's tracks",
+            m.samples
+        )),
+        distance_m: (!has_distance).then_some(m.distance_m),
+        aoa_rad: if has_aoa { None } else { m.aoa_rad },
+        ..Default::default()
+    })
 }
 
 /// The keys a sensor profile sets, as a partial table.
@@ -672,6 +702,15 @@ pub fn resolve(layers: &Layers<'_>) -> Result<Resolved, ConfigError> {
         let layer = difference_from_default(&p.config());
         apply(&mut value, &layer, "", &Source::Preset(p), &mut sources)?;
     }
+    if let Some(m) = layers.measured {
+        apply(
+            &mut value,
+            &sensor_layer(m),
+            "",
+            &Source::Measured,
+            &mut sources,
+        )?;
+    }
     if let Some(s) = layers.sensor {
         apply(
             &mut value,
@@ -763,6 +802,67 @@ mod tests {
     }
 
     #[test]
+    fn a_log_that_states_no_noise_gets_it_measured_and_a_stated_law_wins() {
+        use crate::sim::load_scenario;
+        use crate::sim::simulate::{SimOptions, simulate};
+        for (name, seed) in [("indoor", 1), ("urban", 2)] {
+            let scenario = load_scenario(name, false).unwrap();
+            let e = &scenario.estimator;
+            let mut log = simulate(
+                &scenario,
+                "reference",
+                SimOptions {
+                    seed,
+                    toa_only: false,
+                },
+            )
+            .unwrap()
+            .log;
+            // the simulator states its laws: nothing to measure
+            assert!(measured_profile(&log).is_none());
+            log.header.sensor = None;
+            let m = measured_profile(&log).expect("a whole track is enough to measure");
+            let (d, a) = (m.distance_m.unwrap(), m.aoa_rad.unwrap());
+            // the simulator's estimator floors (its profile states 1.5× them)
+            assert!(
+                (d.floor / e.distance_floor_m - 1.0).abs() < 0.1,
+                "{name}: {d:?}"
+            );
+            assert!(
+                (a.floor / e.aoa_floor_rad - 1.0).abs() < 0.1,
+                "{name}: {a:?}"
+            );
+            let r = resolve(&Layers {
+                measured: Some(&m),
+                ..Default::default()
+            })
+            .unwrap();
+            assert_eq!(r.config.measurement.distance_floor_m, d.floor);
+            assert_eq!(r.sources["measurement.aoa_floor_rad"], Source::Measured);
+            // a law the profile states beats the measured one; the other stays measured
+            let stated = SensorProfile {
+                distance_m: Some(NoiseLaw {
+                    floor: 0.4,
+                    at_0db: 0.2,
+                }),
+                ..Default::default()
+            };
+            log.header.sensor = Some(stated.clone());
+            let m = measured_profile(&log).unwrap();
+            assert!(m.distance_m.is_none() && m.aoa_rad.is_some());
+            let r = resolve(&Layers {
+                measured: Some(&m),
+                sensor: Some(&stated),
+                ..Default::default()
+            })
+            .unwrap();
+            assert_eq!(r.config.measurement.distance_floor_m, 0.4);
+            assert_eq!(r.sources["measurement.distance_floor_m"], Source::Sensor);
+            assert_eq!(r.sources["measurement.aoa_floor_rad"], Source::Measured);
+        }
+    }
+
+    #[test]
     fn the_defaults_are_the_filters_defaults() {
         // but for gross errors, which a log that says nothing is taken to have
         let r = resolve(&Layers::default()).unwrap();
@@ -819,6 +919,7 @@ mod tests {
         };
         let r = resolve(&Layers {
             preset: Some(Preset::Mrclam),
+            measured: None,
             sensor: Some(&profile),
             file: Some(file),
             flags: flags(&["particles=200", "association.method=das"]),

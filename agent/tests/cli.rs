@@ -294,6 +294,57 @@ fn the_configuration_comes_from_the_sensor_profile_a_file_and_flags_and_says_so(
     assert!(err.contains("motion.heading_noise"), "{err}");
 }
 
+#[test]
+fn a_ray_traced_walk_without_noise_laws_gets_the_ones_it_was_made_with() {
+    // The Sionna walks state no sensor profile; their README gives the noise they were made
+    // with: σ_d = √(0.1² + (1.65/√(2·SNR))²) m and σ_θ = √(0.035² + (0.35/√(2·SNR))²) rad,
+    // i.e. floors 0.1 m and 0.035 rad and 1.17 m and 0.247 rad at 0 dB.
+    for walk in ["etoile-walk1", "florence-walk1"] {
+        let log = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../shared/data/sionna")
+            .join(walk);
+        let st = agent()
+            .args(["config", "print", "--log"])
+            .arg(&log)
+            .output()
+            .unwrap();
+        assert!(
+            st.status.success(),
+            "{}",
+            String::from_utf8_lossy(&st.stderr)
+        );
+        let text = String::from_utf8(st.stdout).unwrap();
+        let value = |key: &str| -> f64 {
+            let l = text
+                .lines()
+                .find(|l| l.starts_with(&format!("{key} = ")))
+                .unwrap_or_else(|| panic!("no {key} in\n{text}"));
+            assert!(l.ends_with("# measured from the log"), "{l}");
+            l.split('=')
+                .nth(1)
+                .unwrap()
+                .split('#')
+                .next()
+                .unwrap()
+                .trim()
+                .parse()
+                .unwrap()
+        };
+        for (key, want) in [
+            ("distance_floor_m", 0.1),
+            ("distance_at_0db_m", 1.167),
+            ("aoa_floor_rad", 0.035),
+            ("aoa_at_0db_rad", 0.247),
+        ] {
+            let got = value(key);
+            assert!(
+                (got / want - 1.0).abs() < 0.1,
+                "{walk}: {key} {got} against {want}"
+            );
+        }
+    }
+}
+
 /// Runs `run --quiet --log LOG EXTRA… --out DIR`, which must fail and write nothing; returns
 /// what it printed on stderr.
 fn refused_run(log: &Path, extra: &[&std::ffi::OsStr]) -> String {

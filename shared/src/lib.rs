@@ -7,6 +7,7 @@
 //! defined (and validated) here.
 
 pub mod api;
+pub mod calibration;
 pub mod fastmath;
 pub mod geometry;
 pub mod hexgrid;

@@ -107,6 +107,21 @@ pub struct ConfigArgs {
 impl ConfigArgs {
     /// Resolves the effective configuration over `sensor`.
     pub fn resolve(&self, sensor: Option<&SensorProfile>) -> Result<Resolved> {
+        self.resolve_with(None, sensor)
+    }
+
+    /// Resolves the effective configuration for a log: its sensor profile, and the noise
+    /// laws measured from it where the profile leaves them out.
+    pub fn resolve_for_log(&self, log: &MeasurementLog) -> Result<Resolved> {
+        let measured = config::measured_profile(log);
+        self.resolve_with(measured.as_ref(), log.header.sensor.as_ref())
+    }
+
+    fn resolve_with(
+        &self,
+        measured: Option<&SensorProfile>,
+        sensor: Option<&SensorProfile>,
+    ) -> Result<Resolved> {
         let mut flags = Vec::new();
         if let Some(n) = self.particles {
             flags.push(("particles".to_string(), serde_json::json!(n)));
@@ -121,6 +136,7 @@ impl ConfigArgs {
         let file = self.config.as_deref().map(ConfigFile::read).transpose()?;
         Ok(config::resolve(&Layers {
             preset: self.preset,
+            measured,
             sensor,
             file,
             flags,
@@ -524,15 +540,16 @@ fn load_input(a: &InputArgs, seed: u64) -> Result<(MeasurementLog, Option<Ground
     }
 }
 
-/// The sensor profile `config print` resolves against, without simulating the whole track.
-fn input_profile(a: &InputArgs) -> Result<Option<SensorProfile>> {
+/// The configuration `config print` shows for an input, without simulating the whole track:
+/// a log's (with its measured noise), a scenario's sensor profile's, or the bare one.
+fn resolve_input(a: &InputArgs, config: &ConfigArgs) -> Result<Resolved> {
     match (&a.log, &a.scenario) {
-        (Some(dir), None) => Ok(files::read_log_dir(dir)?.0.header.sensor),
+        (Some(dir), None) => config.resolve_for_log(&files::read_log_dir(dir)?.0),
         (None, Some(s)) => {
             let scenario: Scenario = load_scenario(s, false)?;
-            Ok(Some(scenario.sensor_profile(scenario.receiver.aoa)))
+            config.resolve(Some(&scenario.sensor_profile(scenario.receiver.aoa)))
         }
-        (None, None) => Ok(None),
+        (None, None) => config.resolve(None),
         _ => bail!("give either --log DIR or --scenario S"),
     }
 }
@@ -599,8 +616,7 @@ pub fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Config(ConfigCommand::Print(a)) => {
-            let profile = input_profile(&a.input)?;
-            let r = a.config.resolve(profile.as_ref())?;
+            let r = resolve_input(&a.input, &a.config)?;
             if a.json {
                 let sources: serde_json::Map<String, serde_json::Value> = r
                     .sources
@@ -711,8 +727,26 @@ pub fn run(cli: Cli) -> Result<()> {
 
 fn run_command(a: &RunArgs) -> Result<()> {
     let (log, truth) = load_input(&a.input, a.seed)?;
-    let resolved = a.config.resolve(log.header.sensor.as_ref())?;
+    let resolved = a.config.resolve_for_log(&log)?;
     let cfg = &resolved.config;
+    let measured = |key: &str| resolved.sources.get(key) == Some(&config::Source::Measured);
+    let m = &cfg.measurement;
+    let mut laws = Vec::new();
+    if measured("measurement.distance_floor_m") {
+        laws.push(format!(
+            "distance σ = {:.3} ⊕ {:.3}·10^(−γ/20) m",
+            m.distance_floor_m, m.distance_at_0db_m
+        ));
+    }
+    if measured("measurement.aoa_floor_rad") {
+        laws.push(format!(
+            "angle σ = {:.4} ⊕ {:.4}·10^(−γ/20) rad",
+            m.aoa_floor_rad, m.aoa_at_0db_rad
+        ));
+    }
+    if !laws.is_empty() {
+        println!("noise measured from the log's tracks: {}", laws.join(", "));
+    }
     let initial_speed = truth
         .as_ref()
         .and_then(|t| t.poses.first())
