@@ -12,8 +12,9 @@
 //!
 //! The noise is `n = (n_h, n_v)`: the heading noise of the step and the speed's deviation from
 //! the measured (or previous) speed. Every detection of a transmitter the particle has
-//! mapped is linearized at `n = 0` around the transmitter's mixture mean, with the mixture's
-//! covariance added to the sensor's: `z ≈ ẑ + J·n`, `S = H_tx·P·H_txᵀ + R`. Detections
+//! mapped is linearized at `n = 0` around the component of the transmitter's mixture that
+//! explains it best, with that component's covariance added to the sensor's: `z ≈ ẑ + J·n`,
+//! `S = H_tx·P·H_txᵀ + R`. Detections
 //! outside the 99.9 % gate of that prediction (gross errors, wrong associations) do not
 //! steer the draw. The weights stay exact whatever the linearization's quality: the
 //! particle's weight gains `ln p(n) − ln q(n)` and then, as always, the likelihood of its
@@ -109,23 +110,6 @@ impl Step {
     }
 }
 
-/// Mean and covariance of a mixture over `[x, y, b]` without allocating.
-fn collapse(comps: &[Comp]) -> Option<(Vector3<f64>, Matrix3<f64>)> {
-    let total: f64 = comps.iter().map(|c| c.weight).sum();
-    if comps.is_empty() || total <= 0.0 || !total.is_finite() {
-        return None;
-    }
-    let mean = comps
-        .iter()
-        .fold(Vector3::zeros(), |acc, c| acc + c.g.mean * c.weight)
-        / total;
-    let cov = comps.iter().fold(Matrix3::zeros(), |acc, c| {
-        let d = c.g.mean - mean;
-        acc + (c.g.cov() + d * d.transpose()) * c.weight
-    }) / total;
-    Some((mean, cov))
-}
-
 /// A linearized detection: the innovation `z − ẑ`, `J = ∂z/∂n` (rows: distance, angle), the
 /// innovation's covariance `S` without the motion noise, and the measurement's dimension
 /// (1 without an angle: its row is zero, with unit variance).
@@ -186,6 +170,39 @@ fn linearize(
     }
 }
 
+/// The detection linearized at the component of the transmitter's mixture that explains it
+/// best: the largest `w_c·N(ν_c; 0, S_c + J·Q·Jᵀ)`. A young transmitter's components lie
+/// along the ray it was first seen on, from the receiver out to the measured distance; their
+/// moment-matched collapse sits halfway, where the angle's sensitivity to the receiver's
+/// motion is not any component's, and a draw steered by it puts the particles where no
+/// component would: the importance ratios then spread, and with them the weights.
+fn best_component(
+    m: &Meas,
+    nominal: &Pose,
+    jac_pose: &nalgebra::Matrix3x2<f64>,
+    q: &Matrix2<f64>,
+    comps: &[Comp],
+) -> Option<Linearized> {
+    let mut best: Option<(f64, Linearized)> = None;
+    for c in comps.iter().filter(|c| c.weight > 0.0) {
+        let Some(l) = linearize(m, nominal, jac_pose, &c.g.mean, &c.g.cov()) else {
+            continue;
+        };
+        let s_full = l.s + l.j * q * l.j.transpose();
+        let Some(chol) = s_full.cholesky() else {
+            continue;
+        };
+        let l_diag = chol.l();
+        let score = c.weight.ln()
+            - 0.5 * l.nu.dot(&chol.solve(&l.nu))
+            - (l_diag[(0, 0)] * l_diag[(1, 1)]).ln();
+        if best.as_ref().is_none_or(|(b, _)| score > *b) {
+            best = Some((score, l));
+        }
+    }
+    best.map(|(_, l)| l)
+}
+
 /// Draws the step's noise from the proposal informed by `detections` (the measurement and the
 /// mixture of a transmitter the particle has mapped, per detection). Returns the pose and
 /// `ln p(n) − ln q(n)`, or None when no detection informs the step (the caller then draws from
@@ -206,11 +223,8 @@ pub(super) fn propose<'a>(
     let mut eta = Vector2::zeros();
     let mut used = 0;
     for (m, comps) in detections {
-        let Some((mean, p)) = collapse(comps) else {
-            continue;
-        };
-        let Some(Linearized { nu, j, s, dim }) = linearize(m, &nominal, &jac_pose, &mean, &p)
-        else {
+        let lin = best_component(m, &nominal, &jac_pose, &q, comps);
+        let Some(Linearized { nu, j, s, dim }) = lin else {
             continue;
         };
         // the gate on the prediction's full spread, motion noise included

@@ -235,15 +235,18 @@ fn a_correct_prior_map_is_matched_and_lowers_the_error() {
     // The true virtual transmitters of the track, in a frame rotated by 0.7 rad and shifted:
     // the agent must find the transform while running, take the prior's transmitters over
     // for new tracks (Ulmschneider et al. 2021 eq. 19), and end with a lower mean MAE than alone, on
-    // average over three seeds (tolerance: at least 20 % lower).
+    // average over four seeds (tolerance: at least 20 % lower), and a final error below 0.5 m
+    // on every seed. 100 particles, where the filter alone still loses its way on some seeds
+    // (measured 2026-12-06: mean 0.43 m alone, 0.29 m with the prior; at 200 particles both
+    // reach about 0.22 m).
     use super::PriorSettings;
     let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
     let (mut alone, mut with) = (0.0, 0.0);
-    for seed in [1u64, 2, 3] {
+    for seed in [1u64, 2, 3, 4] {
         let out = indoor_sim("user02", seed);
         let prior = out.truth_map(&map_from_local, 0.3);
-        let a = run_filter(&out.log, Some(&out.truth), cfg(seed, 200), false).unwrap();
-        let b = run_with_prior(&out, &prior, PriorSettings::default(), seed, 200);
+        let a = run_filter(&out.log, Some(&out.truth), cfg(seed, 100), false).unwrap();
+        let b = run_with_prior(&out, &prior, PriorSettings::default(), seed, 100);
         let first = b.matches.iter().find(|m| m.accepted).expect("matched");
         assert!(
             (first.angle_rad - 0.7).abs() < 0.05
@@ -252,8 +255,13 @@ fn a_correct_prior_map_is_matched_and_lowers_the_error() {
             "seed {seed}: first match {first:?}"
         );
         assert!(b.filter.prior_transmitters_used() >= 5.0);
-        alone += mean_mae(&a) / 3.0;
-        with += mean_mae(&b) / 3.0;
+        let last = b.rows.last().and_then(|r| r.truth).expect("truth").mae_m;
+        assert!(
+            last < 0.5,
+            "seed {seed}: final error with the prior {last:.2} m"
+        );
+        alone += mean_mae(&a) / 4.0;
+        with += mean_mae(&b) / 4.0;
     }
     assert!(
         with < 0.8 * alone,
@@ -1047,20 +1055,20 @@ fn the_fallback_reports_the_more_likely_filter_and_keeps_a_correct_prior() {
     // row of the run whose cumulative log evidence is the larger at that snapshot (ties: the
     // prior's), the true map is ahead in at least 95 % of the rows and at the end (its map is
     // the one written), and the reported mean MAE is at least 20 % below the run alone's
-    // (summed over two seeds; measured 0.31 against 0.57 m).
+    // (summed over four seeds, 100 particles; measured 2026-12-06: 1.17 against 1.72 m).
     use super::PriorSettings;
     let map_from_local = nalgebra::Isometry2::new(nalgebra::Vector2::new(5.0, -3.0), 0.7);
     let (mut reported, mut on_its_own) = (0.0, 0.0);
-    for seed in [1u64, 2] {
+    for seed in [1u64, 2, 3, 4] {
         let out = indoor_sim("user02", seed);
         let prior = out.truth_map(&map_from_local, 0.3);
-        let alone = run_filter(&out.log, Some(&out.truth), cfg(seed, 200), false).unwrap();
-        let with = run_with_prior(&out, &prior, PriorSettings::default(), seed, 200);
+        let alone = run_filter(&out.log, Some(&out.truth), cfg(seed, 100), false).unwrap();
+        let with = run_with_prior(&out, &prior, PriorSettings::default(), seed, 100);
         let tracker = super::PriorTracker::new(prior, PriorSettings::default(), seed).unwrap();
         let both = crate::run::run_filter_with_fallback(
             &out.log,
             Some(&out.truth),
-            cfg(seed, 200),
+            cfg(seed, 100),
             false,
             tracker,
         )
