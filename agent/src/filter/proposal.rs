@@ -171,7 +171,8 @@ fn linearize(
 }
 
 /// The detection linearized at the component of the transmitter's mixture that explains it
-/// best: the largest `w_c·N(ν_c; 0, S_c + J·Q·Jᵀ)`. A young transmitter's components lie
+/// best — the largest `w_c·N(ν_c; 0, S_c + J·Q·Jᵀ)` — with its squared Mahalanobis distance
+/// `νᵀ(S_c + J·Q·Jᵀ)⁻¹ν`, which the caller gates on. A young transmitter's components lie
 /// along the ray it was first seen on, from the receiver out to the measured distance; their
 /// moment-matched collapse sits halfway, where the angle's sensitivity to the receiver's
 /// motion is not any component's, and a draw steered by it puts the particles where no
@@ -182,8 +183,8 @@ fn best_component(
     jac_pose: &nalgebra::Matrix3x2<f64>,
     q: &Matrix2<f64>,
     comps: &[Comp],
-) -> Option<Linearized> {
-    let mut best: Option<(f64, Linearized)> = None;
+) -> Option<(Linearized, f64)> {
+    let mut best: Option<(f64, Linearized, f64)> = None;
     for c in comps.iter().filter(|c| c.weight > 0.0) {
         let Some(l) = linearize(m, nominal, jac_pose, &c.g.mean, &c.g.cov()) else {
             continue;
@@ -193,14 +194,13 @@ fn best_component(
             continue;
         };
         let l_diag = chol.l();
-        let score = c.weight.ln()
-            - 0.5 * l.nu.dot(&chol.solve(&l.nu))
-            - (l_diag[(0, 0)] * l_diag[(1, 1)]).ln();
-        if best.as_ref().is_none_or(|(b, _)| score > *b) {
-            best = Some((score, l));
+        let d2 = l.nu.dot(&chol.solve(&l.nu));
+        let score = c.weight.ln() - 0.5 * d2 - (l_diag[(0, 0)] * l_diag[(1, 1)]).ln();
+        if best.as_ref().is_none_or(|(b, _, _)| score > *b) {
+            best = Some((score, l, d2));
         }
     }
-    best.map(|(_, l)| l)
+    best.map(|(_, l, d2)| (l, d2))
 }
 
 /// Draws the step's noise from the proposal informed by `detections` (the measurement and the
@@ -224,15 +224,12 @@ pub(super) fn propose<'a>(
     let mut used = 0;
     for (m, comps) in detections {
         let lin = best_component(m, &nominal, &jac_pose, &q, comps);
-        let Some(Linearized { nu, j, s, dim }) = lin else {
+        let Some((Linearized { nu, j, s, dim }, d2)) = lin else {
             continue;
         };
         // the gate on the prediction's full spread, motion noise included
-        let Some(s_full) = (s + j * q * j.transpose()).try_inverse() else {
-            continue;
-        };
         let gate = if dim == 2 { GATE_2 } else { GATE_1 };
-        if nu.dot(&(s_full * nu)) > gate {
+        if d2 > gate {
             continue;
         }
         let Some(s_inv) = s.try_inverse() else {
