@@ -82,6 +82,9 @@ pub struct MeasurementConfig {
     pub outlier_probability: f64,
     /// density of an outlier over the measurement space (1/(m·rad); ToA-only 1/m)
     pub outlier_density: f64,
+    /// degrees of freedom of a Student-t error law whose scale is the noise law above
+    /// (heavy-tailed errors); 0 = Gaussian
+    pub noise_dof: f64,
 }
 
 /// Data association of new tracks (Gentner et al. 2016 §5; Ulmschneider et al. 2021 eq. 19).
@@ -164,6 +167,7 @@ impl Default for RunConfig {
                 // a log that says nothing of gross errors is taken to have them
                 outlier_probability: DEFAULT_OUTLIER_PROBABILITY,
                 outlier_density: f.outlier_density,
+                noise_dof: 0.0,
             },
             association: AssociationConfig {
                 method: f.association,
@@ -341,6 +345,15 @@ impl RunConfig {
                 format!("must be in [0, 1), got {}", x.outlier_probability),
             );
         }
+        if !(x.noise_dof.is_finite() && x.noise_dof >= 0.0) {
+            return bad(
+                "measurement.noise_dof",
+                format!(
+                    "must be a finite number ≥ 0 (0: Gaussian), got {}",
+                    x.noise_dof
+                ),
+            );
+        }
         if !(a.p0.is_finite() && a.p0 > 0.0) {
             return bad("association.p0", format!("must be > 0, got {}", a.p0));
         }
@@ -403,6 +416,7 @@ impl RunConfig {
             association_visibility_weight: a.visibility_weight,
             outlier_probability: x.outlier_probability,
             outlier_density: x.outlier_density,
+            noise_dof: x.noise_dof,
             noise: NoiseModel {
                 distance_floor_m: x.distance_floor_m,
                 distance_at_0db_m: x.distance_at_0db_m,
@@ -582,6 +596,9 @@ pub fn sensor_layer(p: &SensorProfile) -> Value {
     }
     if let Some(v) = p.gate_chi2 {
         set("association.gate_chi2", json!(v));
+    }
+    if let Some(v) = p.noise_dof {
+        set("measurement.noise_dof", json!(v));
     }
     t
 }

@@ -222,3 +222,184 @@ pub fn evaluate(a: &EvaluateSpec) -> Result<()> {
     println!("wrote {}", a.out.display());
     Ok(())
 }
+
+/// One recorded log with ground truth to evaluate, and the configuration resolved for it
+/// (its own sensor profile and measured noise).
+#[derive(Debug, Clone)]
+pub struct LogCase {
+    pub name: String,
+    pub log: echomap_shared::log::MeasurementLog,
+    pub truth: echomap_shared::log::GroundTruth,
+    pub config: RunConfig,
+}
+
+/// One run of [`evaluate_logs`] (a row of `runs.csv`).
+#[derive(Debug, Clone, Serialize)]
+pub struct LogRun {
+    pub log: String,
+    pub seed: u64,
+    pub mae_mean_m: f64,
+    pub mae_final_m: f64,
+    pub dead_reckoning_mean_m: f64,
+    pub dead_reckoning_final_m: f64,
+    /// mean MAE over dead reckoning's mean error
+    pub ratio: f64,
+    pub coverage95: f64,
+}
+
+/// The share of runs and logs `evaluate --logs` reports.
+#[derive(Debug, Clone, Serialize)]
+pub struct LogsSummary {
+    pub runs: Vec<LogRun>,
+    /// per log: the mean over its runs of the ratio
+    pub log_ratio: Vec<(String, f64)>,
+    /// the median over logs of `log_ratio`
+    pub median_ratio: f64,
+    /// logs whose mean ratio is above 1 (worse than their own odometry)
+    pub logs_above_1: usize,
+    /// mean over all runs of coverage95
+    pub mean_coverage95: f64,
+}
+
+/// `evaluate --logs`: every log × seeds `first_seed..first_seed + seeds`, the filter's mean
+/// error against dead reckoning from the same log's odometry; writes `runs.csv`,
+/// `summary.json`, `results.md` and `ratio.png/svg` into `out`. Every log must carry speed
+/// (dead reckoning needs it).
+pub fn evaluate_logs(
+    cases: &[LogCase],
+    seeds: u64,
+    first_seed: u64,
+    out: &std::path::Path,
+) -> Result<LogsSummary> {
+    anyhow::ensure!(!cases.is_empty(), "no log to evaluate");
+    anyhow::ensure!(seeds >= 1, "--seeds must be at least 1");
+    for c in cases {
+        anyhow::ensure!(
+            c.log.header.speed,
+            "{}: the log carries no speed, so it has no dead reckoning to compare with",
+            c.name
+        );
+    }
+    let bar = ProgressBar::new(seeds * cases.len() as u64);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "evaluate [{elapsed_precise}] {wide_bar} {pos}/{len} runs {msg}",
+        )
+        .expect("static template"),
+    );
+    let mut runs = Vec::new();
+    for c in cases {
+        let v0 = c.truth.poses.first().map(|p| p.speed_mps).unwrap_or(0.0);
+        for seed in first_seed..first_seed + seeds {
+            bar.set_message(format!("{} seed {seed}", c.name));
+            let out = run_filter(
+                &c.log,
+                Some(&c.truth),
+                c.config.filter_config(seed, v0),
+                false,
+            )?;
+            let s = crate::output::summarize(&out, &c.truth, &c.log);
+            let dr = s.dead_reckoning_mean_m.unwrap_or(f64::NAN);
+            runs.push(LogRun {
+                log: c.name.clone(),
+                seed,
+                mae_mean_m: s.mae_mean_m,
+                mae_final_m: s.mae_final_m,
+                dead_reckoning_mean_m: dr,
+                dead_reckoning_final_m: s.dead_reckoning_final_m.unwrap_or(f64::NAN),
+                ratio: s.mae_mean_m / dr,
+                coverage95: s.coverage95,
+            });
+            bar.inc(1);
+        }
+    }
+    bar.finish_and_clear();
+    let per_log: Vec<(String, Vec<f64>)> = cases
+        .iter()
+        .map(|c| {
+            let v = runs.iter().filter(|r| r.log == c.name).map(|r| r.ratio);
+            (c.name.clone(), v.collect())
+        })
+        .collect();
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let log_ratio: Vec<(String, f64)> = per_log.iter().map(|(n, v)| (n.clone(), mean(v))).collect();
+    let ratios: Vec<f64> = log_ratio.iter().map(|x| x.1).collect();
+    let summary = LogsSummary {
+        median_ratio: percentile(&ratios, 0.5),
+        logs_above_1: ratios.iter().filter(|&&r| r > 1.0).count(),
+        mean_coverage95: mean(&runs.iter().map(|r| r.coverage95).collect::<Vec<_>>()),
+        log_ratio,
+        runs,
+    };
+    std::fs::create_dir_all(out)?;
+    let mut csv = String::from(
+        "log,seed,mae_mean_m,mae_final_m,dead_reckoning_mean_m,dead_reckoning_final_m,ratio,coverage95\n",
+    );
+    for r in &summary.runs {
+        csv.push_str(&format!(
+            "{},{},{},{},{},{},{},{}\n",
+            r.log,
+            r.seed,
+            r.mae_mean_m,
+            r.mae_final_m,
+            r.dead_reckoning_mean_m,
+            r.dead_reckoning_final_m,
+            r.ratio,
+            r.coverage95
+        ));
+    }
+    std::fs::write(out.join("runs.csv"), csv)?;
+    std::fs::write(
+        out.join("summary.json"),
+        serde_json::to_string_pretty(&summary)?,
+    )?;
+    std::fs::write(out.join("results.md"), logs_markdown(&summary, cases))?;
+    let particles = cases[0].config.particles;
+    for ext in ["png", "svg"] {
+        crate::plot::draw_ratios(
+            &format!(
+                "{} logs × {seeds} seeds, {particles} particles",
+                cases.len()
+            ),
+            &per_log,
+            &out.join(format!("ratio.{ext}")),
+        )?;
+    }
+    Ok(summary)
+}
+
+/// The per-log table of [`evaluate_logs`] in Markdown.
+fn logs_markdown(s: &LogsSummary, cases: &[LogCase]) -> String {
+    let mut md = String::from(
+        "| log | DR mean (m) | filter mean MAE per seed (m) | ratio per seed | mean ratio | coverage95 (mean) |\n| --- | --- | --- | --- | --- | --- |\n",
+    );
+    for (c, (_, ratio)) in cases.iter().zip(&s.log_ratio) {
+        let runs: Vec<&LogRun> = s.runs.iter().filter(|r| r.log == c.name).collect();
+        let join = |f: &dyn Fn(&LogRun) -> f64| {
+            runs.iter()
+                .map(|r| format!("{:.2}", f(r)))
+                .collect::<Vec<_>>()
+                .join(" / ")
+        };
+        let cov = runs.iter().map(|r| r.coverage95).sum::<f64>() / runs.len().max(1) as f64;
+        md.push_str(&format!(
+            "| {} | {:.2} | {} | {} | {:.2} | {:.2} |\n",
+            c.name,
+            runs.first()
+                .map(|r| r.dead_reckoning_mean_m)
+                .unwrap_or(f64::NAN),
+            join(&|r| r.mae_mean_m),
+            join(&|r| r.ratio),
+            ratio,
+            cov
+        ));
+    }
+    md.push_str(&format!(
+        "\nMedian over the {} logs of the mean ratio: **{:.2}**; logs above 1.0: **{}**; mean coverage of the 95 % ellipse: {:.2}.\n",
+        cases.len(),
+        s.median_ratio,
+        s.logs_above_1,
+        s.mean_coverage95
+    ));
+    md
+}

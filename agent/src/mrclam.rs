@@ -531,6 +531,8 @@ pub fn sensor_profile() -> SensorProfile {
         // those tails lie within the wide gate; the documented MRCLAM figures take every
         // detection as drawn from the noise laws
         outlier_probability: Some(0.0),
+        // and as Gaussian laws with that gate
+        noise_dof: Some(0.0),
     }
 }
 

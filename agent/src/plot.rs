@@ -643,3 +643,107 @@ pub fn draw_waterfall(
     root.present()
         .map_err(|e| anyhow!("writing {}: {e}", out.display()))
 }
+
+/// The filter's error over dead reckoning's per log: one dot per run (seed), a bar at the
+/// mean of each log's runs, and dashed lines at the ratios 1 (no better than the odometry)
+/// and ½. `rows` are `(log name, ratio per run)`.
+pub fn draw_ratios(title: &str, rows: &[(String, Vec<f64>)], out: &Path) -> Result<()> {
+    anyhow::ensure!(!rows.is_empty(), "nothing to draw");
+    let n = rows.len();
+    let y_max = rows
+        .iter()
+        .flat_map(|r| r.1.iter().copied())
+        .filter(|v| v.is_finite())
+        .fold(1.2, f64::max)
+        * 1.4; // room above the highest run for the legend
+    let names: Vec<String> = rows.iter().map(|r| r.0.clone()).collect();
+    macro_rules! body {
+        ($root:expr) => {{
+            let root = $root;
+            root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
+            let mut chart = ChartBuilder::on(root)
+                .caption(title, ("sans-serif", 22))
+                .margin(10)
+                .x_label_area_size(60)
+                .y_label_area_size(55)
+                .build_cartesian_2d(-0.5..(n as f64 - 0.5), 0.0..y_max)
+                .map_err(|e| anyhow!("{e}"))?;
+            chart
+                .configure_mesh()
+                .disable_x_mesh()
+                .x_labels(n)
+                .x_label_formatter(&|x| {
+                    let k = x.round();
+                    if (x - k).abs() < 1e-6 && k >= 0.0 && (k as usize) < names.len() {
+                        names[k as usize].clone()
+                    } else {
+                        String::new()
+                    }
+                })
+                .y_desc("mean error / dead reckoning's")
+                .draw()
+                .map_err(|e| anyhow!("{e}"))?;
+            for (level, label) in [(1.0, "1: no better than the odometry"), (0.5, "½")] {
+                chart
+                    .draw_series(DashedLineSeries::new(
+                        [(-0.5, level), (n as f64 - 0.5, level)],
+                        6,
+                        4,
+                        RGBColor(120, 120, 120).stroke_width(1),
+                    ))
+                    .map_err(|e| anyhow!("{e}"))?
+                    .label(label)
+                    .legend(|(x, y)| {
+                        PathElement::new([(x, y), (x + 20, y)], RGBColor(120, 120, 120))
+                    });
+            }
+            let dots = rows.iter().enumerate().flat_map(|(i, r)| {
+                let k = r.1.len().max(1) as f64;
+                r.1.iter().enumerate().map(move |(j, v)| {
+                    // runs spread a little sideways so that equal values stay visible
+                    let dx = if k > 1.0 {
+                        0.3 * (j as f64 / (k - 1.0) - 0.5)
+                    } else {
+                        0.0
+                    };
+                    Circle::new((i as f64 + dx, *v), 4, BLUE.filled())
+                })
+            });
+            chart
+                .draw_series(dots)
+                .map_err(|e| anyhow!("{e}"))?
+                .label("one run (seed)")
+                .legend(|(x, y)| Circle::new((x + 10, y), 4, BLUE.filled()));
+            let means = rows.iter().enumerate().filter_map(|(i, r)| {
+                let v: Vec<f64> = r.1.iter().copied().filter(|v| v.is_finite()).collect();
+                (!v.is_empty()).then(|| {
+                    let m = v.iter().sum::<f64>() / v.len() as f64;
+                    PathElement::new(
+                        [(i as f64 - 0.3, m), (i as f64 + 0.3, m)],
+                        RED.stroke_width(3),
+                    )
+                })
+            });
+            chart
+                .draw_series(means)
+                .map_err(|e| anyhow!("{e}"))?
+                .label("mean of the runs")
+                .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED.stroke_width(3)));
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::UpperRight)
+                .background_style(WHITE.mix(0.8))
+                .border_style(BLACK)
+                .label_font(("sans-serif", 14))
+                .draw()
+                .map_err(|e| anyhow!("{e}"))?;
+            Ok(())
+        }};
+    }
+    with_backend(
+        out,
+        ((160 + 110 * n as u32).max(900), 560),
+        |root| body!(root),
+        |root| body!(root),
+    )
+}

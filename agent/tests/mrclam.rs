@@ -148,3 +148,108 @@ fn the_odometry_delay_read_off_the_bearings_is_the_one_the_ground_truth_shows() 
         );
     }
 }
+
+fn agent() -> std::process::Command {
+    std::process::Command::new(env!("CARGO_BIN_EXE_echomap-agent"))
+}
+
+fn ok(c: &mut std::process::Command) -> String {
+    let o = c.output().unwrap();
+    assert!(
+        o.status.success(),
+        "{c:?}: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+#[test]
+fn evaluating_recorded_logs_agrees_with_single_runs_and_refuses_a_log_without_truth() {
+    let Some(dir) = dataset() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let log = |r: u32| tmp.path().join(format!("robot{r}"));
+    for r in [1, 2] {
+        ok(agent()
+            .args(["import", "mrclam"])
+            .arg(&dir)
+            .args(["--robot", &r.to_string(), "--out"])
+            .arg(log(r)));
+    }
+    let ev = tmp.path().join("ev");
+    let logs = format!("{},{}", log(1).display(), log(2).display());
+    ok(agent()
+        .args([
+            "evaluate",
+            "--logs",
+            &logs,
+            "--seeds",
+            "2",
+            "--first-seed",
+            "3",
+        ])
+        .args(["--particles", "100", "--out"])
+        .arg(&ev));
+    // the same log and seed through `run`: the same error and the same dead reckoning
+    let one = tmp.path().join("one");
+    ok(agent()
+        .args(["run", "--log"])
+        .arg(log(2))
+        .args(["--particles", "100", "--seed", "4", "--quiet", "--out"])
+        .arg(&one));
+    let single: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(one.join("summary.json")).unwrap()).unwrap();
+    let csv = std::fs::read_to_string(ev.join("runs.csv")).unwrap();
+    let rows: Vec<Vec<String>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(str::to_owned).collect())
+        .collect();
+    assert_eq!(rows.len(), 4, "{csv}");
+    let row = rows
+        .iter()
+        .find(|r| r[0] == "robot2" && r[1] == "4")
+        .unwrap_or_else(|| panic!("no row for robot2 seed 4: {csv}"));
+    let num = |s: &str| s.parse::<f64>().unwrap();
+    let mae = single["mae_mean_m"].as_f64().unwrap();
+    let dr = single["dead_reckoning_mean_m"].as_f64().unwrap();
+    assert!((num(&row[2]) - mae).abs() < 1e-9, "{row:?} against {mae}");
+    assert!((num(&row[4]) - dr).abs() < 1e-9, "{row:?} against {dr}");
+    assert!((num(&row[6]) - mae / dr).abs() < 1e-9);
+    // the per-log means and their median
+    let mean_of = |name: &str| {
+        let v: Vec<f64> = rows
+            .iter()
+            .filter(|r| r[0] == name)
+            .map(|r| num(&r[6]))
+            .collect();
+        v.iter().sum::<f64>() / v.len() as f64
+    };
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(ev.join("summary.json")).unwrap()).unwrap();
+    let median = 0.5 * (mean_of("robot1") + mean_of("robot2"));
+    assert!((summary["median_ratio"].as_f64().unwrap() - median).abs() < 1e-9);
+    for f in ["ratio.png", "ratio.svg"] {
+        assert!(std::fs::metadata(ev.join(f)).unwrap().len() > 1000, "{f}");
+    }
+    let md = std::fs::read_to_string(ev.join("results.md")).unwrap();
+    assert!(
+        md.contains("| robot1 |") && md.contains("| robot2 |"),
+        "{md}"
+    );
+    // a log without its truth: a clear error, nothing written
+    let bare = tmp.path().join("bare");
+    std::fs::create_dir(&bare).unwrap();
+    std::fs::copy(log(1).join("log.jsonl"), bare.join("log.jsonl")).unwrap();
+    let ev2 = tmp.path().join("ev2");
+    let o = agent()
+        .args(["evaluate", "--logs"])
+        .arg(format!("{},{}", log(1).display(), bare.display()))
+        .args(["--seeds", "1", "--particles", "50", "--out"])
+        .arg(&ev2)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(err.contains("bare") && err.contains("truth.json"), "{err}");
+    assert!(!ev2.exists());
+}

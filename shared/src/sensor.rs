@@ -86,6 +86,12 @@ pub struct SensorProfile {
     /// sensor that states nothing is taken to have them
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub outlier_probability: Option<f64>,
+    /// degrees of freedom ν of a Student-t error law whose scale is the noise laws above: an
+    /// estimator whose errors are mostly as stated but now and then many times larger (paths
+    /// closer than the resolution, sidelobes of strong paths) states a small ν (3–5); 0 is a
+    /// Gaussian
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_dof: Option<f64>,
 }
 
 impl SensorProfile {
@@ -125,6 +131,7 @@ impl SensorProfile {
             positive,
         ));
         checks.push(("sensor.gate_chi2", self.gate_chi2, positive));
+        checks.push(("sensor.noise_dof", self.noise_dof, non_negative));
         if let Some(v) = self.outlier_probability
             && !(0.0..1.0).contains(&v)
         {

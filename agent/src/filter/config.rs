@@ -166,6 +166,9 @@ pub struct FilterConfig {
     pub outlier_probability: f64,
     /// density λ of an outlier over the measurement space (1/(m·rad); ToA-only: 1/m)
     pub outlier_density: f64,
+    /// degrees of freedom ν of a Student-t error law whose scale is the noise law (heavy
+    /// tails: errors of many σ are rare but not impossible); 0 = Gaussian
+    pub noise_dof: f64,
     /// squared Mahalanobis gate of an association candidate (χ², default 11.8 ≈ 99.7 % for 2 dof)
     pub association_gate: f64,
     /// detections of a new track over which its association with an old transmitter is
@@ -241,6 +244,7 @@ impl Default for FilterConfig {
             prior_association_window: 30,
             outlier_probability: 0.0,
             outlier_density: 1.0 / (10.0 * std::f64::consts::TAU),
+            noise_dof: 0.0,
             association_max_spread_m: 3.0,
             prior_min_existence: 0.5,
             association_visibility_weight: 1.0,

@@ -22,6 +22,7 @@
 
 use super::config::FilterConfig;
 use super::model::{Comp, Pose};
+use super::srckf;
 use super::update::Meas;
 use echomap_shared::wrap_angle;
 use nalgebra::{Matrix2, Matrix3, RowVector3, Vector2, Vector3};
@@ -235,6 +236,9 @@ pub(super) fn propose<'a>(
         let Some(s_inv) = s.try_inverse() else {
             continue;
         };
+        // a Student-t detection in its tails steers the draw with the weight its law gives it
+        let (dof, m_dim) = m.dof_and_dim();
+        let s_inv = s_inv / srckf::student_t_noise_scale(d2, m_dim, dof);
         info += j.transpose() * s_inv * j;
         eta += j.transpose() * s_inv * nu;
         used += 1;

@@ -133,12 +133,44 @@ pub fn log_normal_and_mahalanobis<const M: usize>(
     ))
 }
 
+/// ln of the Student-t density with `dof` degrees of freedom and scale matrix P, in `m`
+/// dimensions, of a residual whose Gaussian density under P is `ln_normal` and whose squared
+/// Mahalanobis distance is `d2`; `dof` = 0 is the Gaussian itself (returns `ln_normal`).
+///
+/// `ln t = ln Γ((ν+m)/2) − ln Γ(ν/2) − (m/2)·ln(νπ) − ½·ln|P| − ((ν+m)/2)·ln(1 + d²/ν)`,
+/// with `−½·ln|P|` recovered from the Gaussian's `ln N = −½·(d² + ln|P| + m·ln 2π)`.
+pub fn student_t_log_density(ln_normal: f64, d2: f64, m: usize, dof: f64) -> f64 {
+    if dof <= 0.0 {
+        return ln_normal;
+    }
+    let mf = m as f64;
+    let neg_half_log_det = ln_normal + 0.5 * d2 + 0.5 * mf * (2.0 * std::f64::consts::PI).ln();
+    libm::lgamma(0.5 * (dof + mf))
+        - libm::lgamma(0.5 * dof)
+        - 0.5 * mf * (dof * std::f64::consts::PI).ln()
+        + neg_half_log_det
+        - 0.5 * (dof + mf) * (d2 / dof).ln_1p()
+}
+
+/// The factor by which a Student-t measurement with `dof` degrees of freedom widens its
+/// noise for a detection at squared Mahalanobis distance `d2` in `m` dimensions: the inverse
+/// of the expected precision weight `(ν + m)/(ν + d²)` of the t law as a Gaussian scale
+/// mixture (one step of its EM), never below 1; 1 for a Gaussian (`dof` = 0).
+pub fn student_t_noise_scale(d2: f64, m: usize, dof: f64) -> f64 {
+    if dof <= 0.0 {
+        return 1.0;
+    }
+    ((dof + d2) / (dof + m as f64)).max(1.0)
+}
+
 /// Result of a measurement update of one component.
 #[derive(Debug, Clone)]
 pub struct Updated {
     pub posterior: SqrtGaussian,
     /// ln N(z; ẑ, P_zz): the component's marginal likelihood
     pub log_likelihood: f64,
+    /// the innovation's squared Mahalanobis distance `νᵀ·P_zz⁻¹·ν`
+    pub d2: f64,
 }
 
 /// Square-root cubature measurement update with measurement `z` and noise factor `r_sqrt`
@@ -198,6 +230,7 @@ pub fn update<const M: usize>(
     Some(Updated {
         posterior: SqrtGaussian { mean, sqrt },
         log_likelihood,
+        d2,
     })
 }
 
@@ -391,5 +424,63 @@ mod tests {
         assert!(up.log_likelihood > -5.0, "{}", up.log_likelihood);
         assert!((up.posterior.mean - g.mean).norm() < 1.0);
         assert!(up.posterior.mean.y < 0.0, "moved towards the measured side");
+    }
+
+    #[test]
+    fn the_student_t_density_is_the_textbook_one() {
+        // one dimension, scale s: t_ν(x) = Γ((ν+1)/2) / (Γ(ν/2)·√(νπ)·s) · (1 + x²/(ν s²))^(−(ν+1)/2)
+        let s = 0.3f64;
+        for (dof, x) in [(1.0, 0.2), (4.0, 1.5), (10.0, -0.7)] {
+            let d2 = x * x / (s * s);
+            let ln_n = -0.5 * (d2 + (s * s).ln() + (2.0 * std::f64::consts::PI).ln());
+            let want = libm::lgamma((dof + 1.0) / 2.0)
+                - libm::lgamma(dof / 2.0)
+                - 0.5 * (dof * std::f64::consts::PI).ln()
+                - s.ln()
+                - (dof + 1.0) / 2.0 * (1.0 + d2 / dof).ln();
+            assert_relative_eq!(
+                student_t_log_density(ln_n, d2, 1, dof),
+                want,
+                epsilon = 1e-12
+            );
+        }
+        // Cauchy (ν = 1) at x = s: 1/(2π·s)
+        let ln_n = -0.5 * (1.0 + (s * s).ln() + (2.0 * std::f64::consts::PI).ln());
+        assert_relative_eq!(
+            student_t_log_density(ln_n, 1.0, 1, 1.0),
+            (1.0 / (2.0 * std::f64::consts::PI * s)).ln(),
+            epsilon = 1e-12
+        );
+        // two dimensions, unit scale, ν = 4: (1/2π)·(1 + d²/4)^(−3)
+        assert_relative_eq!(
+            student_t_log_density(
+                -0.5 * (9.0 + 2.0 * (2.0 * std::f64::consts::PI).ln()),
+                9.0,
+                2,
+                4.0
+            ),
+            -(2.0 * std::f64::consts::PI).ln() - 3.0 * (1.0 + 9.0 / 4.0f64).ln(),
+            epsilon = 1e-12
+        );
+        // ν = 0 is the Gaussian, and a large ν approaches it
+        assert_eq!(student_t_log_density(-3.2, 2.0, 2, 0.0), -3.2);
+        let ln_n = -0.5 * (2.0 + 2.0 * (2.0 * std::f64::consts::PI).ln());
+        assert_relative_eq!(
+            student_t_log_density(ln_n, 2.0, 2, 1e7),
+            ln_n,
+            epsilon = 1e-5
+        );
+        // far out, the t law is far more forgiving than the Gaussian
+        let far = 100.0;
+        let ln_far = -0.5 * (far + 2.0 * (2.0 * std::f64::consts::PI).ln());
+        assert!(student_t_log_density(ln_far, far, 2, 4.0) > ln_far + 35.0);
+    }
+
+    #[test]
+    fn the_student_t_widens_only_detections_in_its_tails() {
+        assert_eq!(student_t_noise_scale(50.0, 2, 0.0), 1.0);
+        assert_eq!(student_t_noise_scale(1.0, 2, 4.0), 1.0);
+        assert_relative_eq!(student_t_noise_scale(26.0, 2, 4.0), 5.0);
+        assert_relative_eq!(student_t_noise_scale(4.0, 1, 3.0), 7.0 / 4.0);
     }
 }

@@ -141,8 +141,9 @@ impl Scenario {
                 floor: PROFILE_FLOOR_MARGIN * e.aoa_floor_rad,
                 at_0db: round_up_2_digits(crlb_a),
             }),
-            // the simulated estimator's errors are the noise laws alone
+            // the simulated estimator's errors are the noise laws alone, Gaussian
             outlier_probability: Some(0.0),
+            noise_dof: Some(0.0),
             ..Default::default()
         }
     }

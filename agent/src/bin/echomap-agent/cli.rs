@@ -236,6 +236,11 @@ pub struct EvaluateArgs {
     /// built-in scenario or JSON file
     #[arg(long, default_value = "urban")]
     pub scenario: String,
+    /// recorded logs with ground truth instead of a scenario (comma-separated directories
+    /// with log.jsonl and truth.json): each log × seeds, the filter's mean error against
+    /// dead reckoning from the log's own odometry (`runs.csv`, `results.md`, `ratio.png/svg`)
+    #[arg(long, value_delimiter = ',', conflicts_with_all = ["track", "toa_only", "compare"])]
+    pub logs: Vec<PathBuf>,
     #[arg(long, default_value = "reference")]
     pub track: String,
     #[arg(long)]
@@ -664,6 +669,51 @@ pub fn run(cli: Cli) -> Result<()> {
             contributor: String::new(),
         })?
         .upload_again(&a.dir),
+        Command::Evaluate(a) if !a.logs.is_empty() => {
+            let mut cases = Vec::new();
+            for dir in &a.logs {
+                let (log, truth) = files::read_log_dir(dir)?;
+                let truth = truth.with_context(|| {
+                    format!(
+                        "{}: no truth.json, nothing to evaluate against",
+                        dir.display()
+                    )
+                })?;
+                let config = a.config.resolve_for_log(&log)?.config;
+                let base = dir
+                    .file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_else(|| dir.display().to_string());
+                let taken = cases
+                    .iter()
+                    .filter(|c: &&evaluate::LogCase| c.name.starts_with(&base))
+                    .count();
+                let name = if taken == 0 {
+                    base
+                } else {
+                    format!("{base}-{}", taken + 1)
+                };
+                cases.push(evaluate::LogCase {
+                    name,
+                    log,
+                    truth,
+                    config,
+                });
+            }
+            let s = evaluate::evaluate_logs(&cases, a.seeds, a.first_seed, &a.out)?;
+            for (name, r) in &s.log_ratio {
+                println!("{name:>24}: mean error / dead reckoning's {r:.2}");
+            }
+            println!(
+                "median over {} logs {:.2}, logs above 1.0: {}, mean coverage95 {:.2}; wrote {}",
+                cases.len(),
+                s.median_ratio,
+                s.logs_above_1,
+                s.mean_coverage95,
+                a.out.display()
+            );
+            Ok(())
+        }
         Command::Evaluate(a) => {
             let scenario = load_scenario(&a.scenario, a.toa_only)?;
             let profile = scenario.sensor_profile(scenario.receiver.aoa);
