@@ -545,6 +545,7 @@ pub fn measured_profile(log: &MeasurementLog) -> Option<SensorProfile> {
         return None;
     }
     let m = calibration::measure_noise(log)?;
+    let has_tail = stated.is_some_and(|s| s.noise_dof.is_some());
     Some(SensorProfile {
         name: Some(format!(
             "measured from {} second differences along the log's tracks",
@@ -552,6 +553,8 @@ pub fn measured_profile(log: &MeasurementLog) -> Option<SensorProfile> {
         )),
         distance_m: (!has_distance).then_some(m.distance_m),
         aoa_rad: if has_aoa { None } else { m.aoa_rad },
+        // the laws are measured, so is how heavy their tails are
+        noise_dof: (!has_tail).then_some(m.tail_dof),
         ..Default::default()
     })
 }
@@ -849,12 +852,26 @@ mod tests {
                 (a.floor / e.aoa_floor_rad - 1.0).abs() < 0.1,
                 "{name}: {a:?}"
             );
+            // the simulator's errors are Gaussian, and measure so
+            assert_eq!(m.noise_dof, Some(0.0), "{name}");
+            // one detection in 25 eight floors long: tails a Gaussian cannot hold
+            let mut heavy = log.clone();
+            for (k, snap) in heavy.snapshots.iter_mut().enumerate() {
+                for c in &mut snap.components {
+                    if (k as u64 + c.track) % 25 == 0 {
+                        c.d += 8.0 * e.distance_floor_m;
+                    }
+                }
+            }
+            let dof = measured_profile(&heavy).unwrap().noise_dof.unwrap();
+            assert!((1.0..=10.0).contains(&dof), "{name}: ν = {dof}");
             let r = resolve(&Layers {
                 measured: Some(&m),
                 ..Default::default()
             })
             .unwrap();
             assert_eq!(r.config.measurement.distance_floor_m, d.floor);
+            assert_eq!(r.config.measurement.noise_dof, 0.0);
             assert_eq!(r.sources["measurement.aoa_floor_rad"], Source::Measured);
             // a law the profile states beats the measured one; the other stays measured
             let stated = SensorProfile {

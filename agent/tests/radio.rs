@@ -336,6 +336,14 @@ fn the_front_end_finds_the_paths_with_a_circular_array_too() {
     assert_eq!(elements, 8);
     assert!(apart >= 50, "{apart}");
     assert!(found * 4 >= apart * 3, "{found}/{apart}");
-    let name = log.header.sensor.and_then(|s| s.name).unwrap_or_default();
-    assert!(!name.is_empty(), "the front end names its sensor");
+    let sensor = log.header.sensor.expect("the front end states its noise");
+    assert!(
+        !sensor.name.unwrap_or_default().is_empty(),
+        "the front end names its sensor"
+    );
+    // the front end says how heavy its errors' tails are (0: Gaussian; over these first
+    // 150 snapshots it measured 0, over the whole walk 2)
+    let dof = sensor.noise_dof.expect("the front end states its tails");
+    println!("front end, circular array: tails of a Student-t with ν = {dof}");
+    assert!(dof == 0.0 || (1.0..=30.0).contains(&dof), "ν = {dof}");
 }

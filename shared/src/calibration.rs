@@ -36,6 +36,9 @@ pub struct MeasuredNoise {
     pub samples: usize,
     /// share of second differences left out as jumps to another path
     pub jump_fraction: f64,
+    /// degrees of freedom of the Student-t law that fits the second differences over their
+    /// fitted σ, jumps included ([`student_t_dof`]; 0: Gaussian)
+    pub tail_dof: f64,
 }
 
 /// One second difference: of distance, of world-frame angle, with the mean of
@@ -62,11 +65,23 @@ pub fn measure_noise(log: &MeasurementLog) -> Option<MeasuredNoise> {
     });
     let jumps = d_jumps + aoa_rad.map_or(0, |(_, j)| j);
     let series = if aoa_rad.is_some() { 2 } else { 1 };
+    let normalized = |e: f64, l: &NoiseLaw, x: f64| {
+        let v = 6.0 * (l.floor * l.floor + l.at_0db * l.at_0db * x);
+        (v > 0.0).then(|| e / v.sqrt())
+    };
+    let mut u = Vec::with_capacity(series * samples.len());
+    for s in &samples {
+        u.extend(normalized(s.d, &distance_m, s.x));
+        if let (Some(a), Some((law, _))) = (s.aoa, &aoa_rad) {
+            u.extend(normalized(a, law, s.x));
+        }
+    }
     Some(MeasuredNoise {
         distance_m,
         aoa_rad: aoa_rad.map(|(l, _)| l),
         samples: samples.len(),
         jump_fraction: jumps as f64 / (series * samples.len()) as f64,
+        tail_dof: student_t_dof(&u),
     })
 }
 
@@ -198,6 +213,62 @@ fn least_squares(x: &[f64], y: &[f64], keep: &[bool], prior: Option<(f64, f64)>)
     } else {
         (floor_only.max(0.0), 0.0)
     }
+}
+
+/// Fewest samples [`student_t_dof`] fits a tail from; with fewer it answers 0 (Gaussian).
+pub const MIN_TAIL_SAMPLES: usize = 100;
+
+/// The degrees of freedom ν of the Student-t law that fits the errors `u` best (maximum
+/// likelihood over ν ∈ {1, 1.5, 2, 2.5, 3, 4, 5, 6, 8, 10, 15, 20, 30} with the scale fitted for
+/// each ν by EM), or 0 when a Gaussian fits at least as well, when the best ν is 30 (as light
+/// as makes no difference), or when there are fewer than [`MIN_TAIL_SAMPLES`]. The scale is whatever fits; what this reports is only how heavy the
+/// tails are.
+///
+/// Fed with second differences of estimates along tracks (`z₋ − 2z₀ + z₊`, normalized), the
+/// tail index is that of the errors themselves: a sum of heavy-tailed terms has the tail of
+/// its heaviest term, so one wild estimate shows in the three differences it enters.
+pub fn student_t_dof(u: &[f64]) -> f64 {
+    let u: Vec<f64> = u.iter().copied().filter(|x| x.is_finite()).collect();
+    if u.len() < MIN_TAIL_SAMPLES {
+        return 0.0;
+    }
+    let n = u.len() as f64;
+    let u2: Vec<f64> = u.iter().map(|x| x * x).collect();
+    let var = u2.iter().sum::<f64>() / n;
+    if var <= 0.0 {
+        return 0.0;
+    }
+    let gauss = -0.5 * n * ((2.0 * std::f64::consts::PI * var).ln() + 1.0);
+    let mut best = (gauss, 0.0);
+    for dof in [
+        1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 15.0, 20.0, 30.0,
+    ] {
+        // EM for the scale: s² = mean of w·u², w = (ν + 1)/(ν + u²/s²)
+        let mut s2 = var;
+        for _ in 0..100 {
+            let next = u2
+                .iter()
+                .map(|&x| x * (dof + 1.0) / (dof + x / s2))
+                .sum::<f64>()
+                / n;
+            let done = (next - s2).abs() <= 1e-10 * s2;
+            s2 = next;
+            if done {
+                break;
+            }
+        }
+        let c = libm::lgamma(0.5 * (dof + 1.0))
+            - libm::lgamma(0.5 * dof)
+            - 0.5 * (dof * std::f64::consts::PI * s2).ln();
+        let ll: f64 = u2
+            .iter()
+            .map(|&x| c - 0.5 * (dof + 1.0) * (x / (dof * s2)).ln_1p())
+            .sum();
+        if ll > best.0 {
+            best = (ll, dof);
+        }
+    }
+    if best.1 >= 30.0 { 0.0 } else { best.1 }
 }
 
 #[cfg(test)]
@@ -364,5 +435,36 @@ mod tests {
             }
         }
         assert!(measure_noise(&log).is_none());
+    }
+
+    #[test]
+    fn the_tail_of_student_t_errors_is_measured_and_a_gaussian_has_none() {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal, StudentT};
+        for seed in 1..=5u64 {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            let t = StudentT::new(4.0).unwrap();
+            let e: Vec<f64> = (0..3000).map(|_| 0.2 * t.sample(&mut rng)).collect();
+            let dof = student_t_dof(&e);
+            assert!(
+                (3.0..=6.0).contains(&dof),
+                "seed {seed}: t₄ errors read as ν = {dof}"
+            );
+            // as second differences along a track: the tail survives the sum
+            let d: Vec<f64> = e.windows(3).map(|w| w[0] - 2.0 * w[1] + w[2]).collect();
+            let dof = student_t_dof(&d);
+            assert!(
+                (2.5..=10.0).contains(&dof),
+                "seed {seed}: second differences ν = {dof}"
+            );
+            let g = Normal::new(0.0, 0.3).unwrap();
+            let e: Vec<f64> = (0..3000).map(|_| g.sample(&mut rng)).collect();
+            let dof = student_t_dof(&e);
+            assert!(
+                dof == 0.0 || dof >= 20.0,
+                "seed {seed}: Gaussian errors read as ν = {dof}"
+            );
+        }
+        assert_eq!(student_t_dof(&[1.0, -3.0, 0.5]), 0.0, "too few to tell");
     }
 }

@@ -170,7 +170,7 @@ pub fn front_end(cir: &Cir, cfg: &FrontEndConfig) -> (MeasurementLog, FrontEndSt
     }
     let detections: usize = snapshots.iter().map(|s| s.components.len()).sum();
     let (crb_d, crb_a) = model.crb(n, n as f64 / 2.0, 0.0, gain);
-    let (floor_d, floor_a) = measured_floors(&history, &model, n, mps, gain);
+    let (floor_d, floor_a, dof) = measured_floors(&history, &model, n, mps, gain, aoa);
     let sensor = SensorProfile {
         name: Some(format!(
             "echomap-agent estimate: SAGE + KEST-style tracking, {} MHz, {} element{}",
@@ -186,6 +186,7 @@ pub fn front_end(cir: &Cir, cfg: &FrontEndConfig) -> (MeasurementLog, FrontEndSt
             floor: floor_a,
             at_0db: crb_a,
         }),
+        noise_dof: Some(dof),
         ..Default::default()
     };
     let header = LogHeader {
@@ -218,18 +219,24 @@ fn noise_from_samples(y: &[Complex<f64>]) -> f64 {
     (*median / std::f64::consts::LN_2).max(f64::MIN_POSITIVE)
 }
 
-/// The noise floors (distance m, angle rad) the tracks show: over three consecutive
-/// detections of a track at ≥ `FLOOR_SNR_DB`, the second difference has variance 6σ² for
-/// white errors (a path's own motion adds little at the snapshot rate); σ² beyond the
-/// Cramér–Rao term at that SNR is the floor. Medians, so a switch of paths does not count.
+/// The noise floors (distance m, angle rad) the tracks show, and the degrees of freedom of
+/// their tails: over three consecutive detections of a track at ≥ `FLOOR_SNR_DB`, the second
+/// difference has variance 6σ² for white errors (a path's own motion adds little at the
+/// snapshot rate); σ² beyond the Cramér–Rao term at that SNR is the floor. Medians, so a
+/// switch of paths does not count. The tails: the second differences over their stated σ,
+/// distance and angle pooled, fitted by a Student-t law
+/// ([`echomap_shared::calibration::student_t_dof`]; 0 when a Gaussian fits as well).
 fn measured_floors(
     history: &HashMap<u64, Vec<(usize, f64, f64, f64)>>,
     model: &super::array::ArrayModel,
     samples: usize,
     mps: f64,
     gain: f64,
-) -> (f64, f64) {
+    aoa: bool,
+) -> (f64, f64, f64) {
     let (mut excess_d, mut excess_a) = (Vec::new(), Vec::new());
+    // (second difference of distance, its Cramér–Rao σ; the same of the angle)
+    let mut raw = Vec::new();
     for h in history.values() {
         for w in h.windows(3) {
             let (a, b, c) = (w[0], w[1], w[2]);
@@ -244,6 +251,7 @@ fn measured_floors(
             );
             excess_d.push(dd * dd / 6.0 - (sd * mps).powi(2));
             excess_a.push(da * da / 6.0 - sa * sa);
+            raw.push((dd, sd * mps, da, sa));
         }
     }
     // the median of a χ²₁-distributed square is 0.455 of its mean
@@ -255,5 +263,20 @@ fn measured_floors(
         let (_, med, _) = v.select_nth_unstable_by(mid, f64::total_cmp);
         (*med / 0.455).max(0.0).sqrt()
     };
-    (floor(excess_d), floor(excess_a))
+    let (floor_d, floor_a) = (floor(excess_d), floor(excess_a));
+    let mut u = Vec::with_capacity(2 * raw.len());
+    for (dd, sd, da, sa) in raw {
+        let (vd, va) = (
+            6.0 * (floor_d * floor_d + sd * sd),
+            6.0 * (floor_a * floor_a + sa * sa),
+        );
+        if vd > 0.0 {
+            u.push(dd / vd.sqrt());
+        }
+        if aoa && va > 0.0 && va.is_finite() {
+            u.push(da / va.sqrt());
+        }
+    }
+    let dof = echomap_shared::calibration::student_t_dof(&u);
+    (floor_d, floor_a, dof)
 }
