@@ -858,7 +858,7 @@ mod tests {
             let mut heavy = log.clone();
             for (k, snap) in heavy.snapshots.iter_mut().enumerate() {
                 for c in &mut snap.components {
-                    if (k as u64 + c.track) % 25 == 0 {
+                    if (k as u64 + c.track).is_multiple_of(25) {
                         c.d += 8.0 * e.distance_floor_m;
                     }
                 }
