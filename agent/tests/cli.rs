@@ -349,6 +349,8 @@ fn a_ray_traced_walk_without_noise_laws_gets_the_ones_it_was_made_with() {
                 "{walk}: {key} {got} against {want}"
             );
         }
+        // the noise was drawn Gaussian, and its tails measure so
+        assert_eq!(value("noise_dof"), 0.0, "{walk}");
     }
 }
 
