@@ -221,8 +221,8 @@ pub const MIN_TAIL_SAMPLES: usize = 100;
 /// The degrees of freedom ν of the Student-t law that fits the errors `u` best (maximum
 /// likelihood over ν ∈ {1, 1.5, 2, 2.5, 3, 4, 5, 6, 8, 10, 15, 20, 30} with the scale fitted for
 /// each ν by EM), or 0 when a Gaussian fits at least as well, when the best ν is 30 (as light
-/// as makes no difference), or when there are fewer than [`MIN_TAIL_SAMPLES`]. The scale is whatever fits; what this reports is only how heavy the
-/// tails are.
+/// as makes no difference), or when there are fewer than [`MIN_TAIL_SAMPLES`]. The scale is
+/// whatever fits; what this reports is only how heavy the tails are.
 ///
 /// Fed with second differences of estimates along tracks (`z₋ − 2z₀ + z₊`, normalized), the
 /// tail index is that of the errors themselves: a sum of heavy-tailed terms has the tail of

@@ -69,15 +69,16 @@ impl Meas {
         if dof <= 0.0 {
             return Some(u);
         }
-        let log_likelihood = srckf::student_t_log_density(u.log_likelihood, u.d2, dim, dof);
-        let scale = srckf::student_t_noise_scale(u.d2, dim, dof);
+        let d2 = u.d2;
+        let log_likelihood = srckf::student_t_log_density(u.log_likelihood, d2, dim, dof);
+        let scale = srckf::student_t_noise_scale(d2, dim, dof);
         let mut out = if scale > 1.0 {
             self.update_scaled(pose, g, scale.sqrt())?
         } else {
-            u.clone()
+            u
         };
         out.log_likelihood = log_likelihood;
-        out.d2 = u.d2;
+        out.d2 = d2;
         Some(out)
     }
 
