@@ -56,11 +56,21 @@ pub struct MotionConfig {
     pub speed_noise_mps_per_sqrt_s: f64,
     /// standard deviation of a measured speed (m/s), when the log carries speed
     pub speed_std_mps: f64,
+    /// standard deviation of the gyroscope's constant bias (rad/s): every particle draws its
+    /// own bias and turns by the gyro's rate minus it
+    pub gyro_bias_std_rad_per_s: f64,
+    /// standard deviation of the measured speed's constant relative scale error: every
+    /// particle draws its own scale and moves by the measured speed times it
+    pub speed_scale_std: f64,
     /// the known initial speed (m/s); unset: from the ground truth when there is one, else 0
     pub initial_speed_mps: Option<f64>,
     /// how each particle draws its motion noise: `informed` by the snapshot's detections of
     /// the transmitters it has mapped (FastSLAM 2.0), or from the `motion` model alone
     pub proposal: Proposal,
+    /// keep the gauge of a map segment started after a silent stretch at dead reckoning's
+    /// estimate, instead of letting resampling pick one particle's (see docs/model.md, "The
+    /// gauge of a map segment")
+    pub keep_gauge: bool,
 }
 
 /// What the filter assumes of the detections.
@@ -155,8 +165,11 @@ impl Default for RunConfig {
                 heading_noise_rad_per_sqrt_rad: f.heading_noise_rad_per_sqrt_rad,
                 speed_noise_mps_per_sqrt_s: f.speed_noise_mps_per_sqrt_s,
                 speed_std_mps: f.speed_measurement_std_mps,
+                gyro_bias_std_rad_per_s: f.gyro_bias_std_rad_per_s,
+                speed_scale_std: f.speed_scale_std,
                 initial_speed_mps: None,
                 proposal: f.proposal,
+                keep_gauge: f.keep_gauge,
             },
             measurement: MeasurementConfig {
                 distance_floor_m: f.noise.distance_floor_m,
@@ -310,6 +323,8 @@ impl RunConfig {
                 m.speed_noise_mps_per_sqrt_s,
             ),
             ("motion.speed_std_mps", m.speed_std_mps),
+            ("motion.gyro_bias_std_rad_per_s", m.gyro_bias_std_rad_per_s),
+            ("motion.speed_scale_std", m.speed_scale_std),
             ("measurement.distance_floor_m", x.distance_floor_m),
             ("measurement.distance_at_0db_m", x.distance_at_0db_m),
             ("measurement.aoa_floor_rad", x.aoa_floor_rad),
@@ -408,7 +423,10 @@ impl RunConfig {
             heading_noise_rad_per_sqrt_rad: m.heading_noise_rad_per_sqrt_rad,
             speed_noise_mps_per_sqrt_s: m.speed_noise_mps_per_sqrt_s,
             speed_measurement_std_mps: m.speed_std_mps,
+            gyro_bias_std_rad_per_s: m.gyro_bias_std_rad_per_s,
+            speed_scale_std: m.speed_scale_std,
             proposal: m.proposal,
+            keep_gauge: m.keep_gauge,
             association_p0: a.p0,
             association_gate: a.gate_chi2,
             association_window: a.window,
@@ -589,6 +607,12 @@ pub fn sensor_layer(p: &SensorProfile) -> Value {
         }
         if let Some(v) = o.speed_std_mps {
             set("motion.speed_std_mps", json!(v));
+        }
+        if let Some(v) = o.gyro_bias_rad_per_s {
+            set("motion.gyro_bias_std_rad_per_s", json!(v));
+        }
+        if let Some(v) = o.speed_scale {
+            set("motion.speed_scale_std", json!(v));
         }
     }
     if let Some(v) = p.new_transmitter_density {

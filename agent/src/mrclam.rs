@@ -522,6 +522,9 @@ pub fn sensor_profile() -> SensorProfile {
             heading_rad_per_sqrt_s: Some(0.006),
             heading_rad_per_sqrt_rad: Some(0.11),
             speed_std_mps: None,
+            // the heading noise per turned angle stands for the wheels' calibration errors
+            gyro_bias_rad_per_s: Some(0.0),
+            speed_scale: Some(0.0),
         }),
         // 15 landmarks seen again and again: a new track id is almost always one seen before
         new_transmitter_density: Some(1e-4),

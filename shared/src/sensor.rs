@@ -44,6 +44,14 @@ pub struct OdometryNoise {
     /// standard deviation of a measured speed (m/s), for logs that carry speed
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub speed_std_mps: Option<f64>,
+    /// standard deviation of the gyroscope's constant bias over the log (rad/s): what a data
+    /// sheet states as the bias stability after turn-on (0: calibrated, or no gyroscope)
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gyro_bias_rad_per_s: Option<f64>,
+    /// standard deviation of the measured speed's constant relative scale error (0.02 = 2 %):
+    /// a step length or wheel radius that is not quite the assumed one
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub speed_scale: Option<f64>,
 }
 
 /// What the sensor that wrote a log is like (the optional `sensor` block of the log header).
@@ -124,6 +132,12 @@ impl SensorProfile {
                 o.speed_std_mps,
                 non_negative,
             ));
+            checks.push((
+                "sensor.odometry.gyro_bias_rad_per_s",
+                o.gyro_bias_rad_per_s,
+                non_negative,
+            ));
+            checks.push(("sensor.odometry.speed_scale", o.speed_scale, non_negative));
         }
         checks.push((
             "sensor.new_transmitter_density",

@@ -139,8 +139,14 @@ pub struct FilterConfig {
     pub speed_noise_mps_per_sqrt_s: f64,
     /// how each particle draws its motion noise (`proposal`)
     pub proposal: Proposal,
+    /// keep an open map segment's gauge through resampling (`super::gauge`)
+    pub keep_gauge: bool,
     /// std of a measured speed (m/s), when the log carries speed
     pub speed_measurement_std_mps: f64,
+    /// std of a constant gyroscope bias each particle draws (rad/s; 0 = none)
+    pub gyro_bias_std_rad_per_s: f64,
+    /// std of a constant relative scale error of the measured speed each particle draws
+    pub speed_scale_std: f64,
     /// the known initial speed (m/s) (Gentner et al. 2016 §6.1: the initial state is known)
     pub initial_speed_mps: f64,
     /// spread of the initial speed over particles (m/s)
@@ -228,7 +234,13 @@ impl Default for FilterConfig {
             heading_noise_rad_per_sqrt_rad: 0.0,
             speed_noise_mps_per_sqrt_s: 0.03,
             proposal: Proposal::Informed,
+            keep_gauge: true,
             speed_measurement_std_mps: 0.05,
+            // a MEMS gyroscope's bias stability after turn-on and a step length or wheel
+            // radius known to a few per cent: data-sheet classes, for logs that do not state
+            // their odometry's
+            gyro_bias_std_rad_per_s: 0.005,
+            speed_scale_std: 0.03,
             initial_speed_mps: 0.0,
             initial_speed_std_mps: 0.0,
             noise: NoiseModel::default(),

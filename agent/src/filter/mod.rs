@@ -10,6 +10,7 @@ pub mod association;
 pub mod config;
 pub mod export;
 mod fusion;
+mod gauge;
 pub mod model;
 mod observe;
 pub mod particle;

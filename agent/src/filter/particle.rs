@@ -75,6 +75,27 @@ pub struct Particle {
     pub prior_frame: Option<FrameDelta>,
     /// new tracks whose association is still open (`association_window` > 1)
     pub pending: Vec<Pending>,
+    /// per open map segment, the pose this particle had when it began (`super::gauge`),
+    /// moved with the particle by every gauge draw since
+    pub anchors: Vec<(u32, Pose)>,
+    /// this particle's draw of the odometry's calibration: the gyroscope's constant bias
+    /// (rad/s) and the measured speed's scale (`motion.gyro_bias_std_rad_per_s`,
+    /// `motion.speed_scale_std`); the detections select the draws that fit
+    pub odometry: Calibration,
+}
+
+/// A constant error of the odometry, one draw per particle.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Calibration {
+    pub gyro_bias: f64,
+    pub speed_scale: f64,
+}
+
+impl Calibration {
+    /// The gyroscope's rate and the measured speed corrected by this calibration.
+    pub fn correct(&self, gyro: f64, speed: Option<f64>) -> (f64, Option<f64>) {
+        (gyro - self.gyro_bias, speed.map(|v| v * self.speed_scale))
+    }
 }
 
 /// A small rigid motion of the agent frame, `D(p) = c + R(δθ)·(p − c) + δt`: one particle's
@@ -134,6 +155,8 @@ impl FrameDelta {
 #[derive(Debug, Clone)]
 pub struct Identity {
     pub track: u64,
+    /// the map segment it was born in (`super::gauge`)
+    pub segment: u32,
 }
 
 impl Particle {
@@ -189,6 +212,7 @@ impl Particle {
         meas: &[(u64, Meas, u32)],
         rng: &mut ChaCha8Rng,
     ) {
+        let (gyro, speed) = self.odometry.correct(gyro, speed);
         if cfg.proposal == Proposal::Informed && dt > 0.0 {
             let step = proposal::Step::new(cfg, &self.pose, gyro, speed, dt);
             let txs = &self.txs;

@@ -8,8 +8,9 @@
 //! particle order, so a run is identical for any thread count. Resampled particles share
 //! unchanged transmitters through `Arc` (copy-on-write with `Arc::make_mut`).
 use super::config::FilterConfig;
+use super::gauge::Gauge;
 use super::model::Pose;
-use super::particle::{Identity, Particle, TxState};
+use super::particle::{Calibration, Identity, Particle, TxState};
 use super::prior_map::Prior;
 use super::truth::{TruthSummary, TruthTrack};
 use super::update::{Meas, log_sum_exp};
@@ -45,7 +46,7 @@ pub struct StepStats {
     pub truth_ll_ratio: Option<f64>,
 }
 
-#[derive(Debug)]
+#[derive(Debug, Clone)]
 pub struct Filter {
     pub(super) cfg: FilterConfig,
     pub(super) aoa: bool,
@@ -66,6 +67,12 @@ pub struct Filter {
     pub(super) outliers: usize,
     /// the true track run through the same model, when the true poses are given
     pub(super) truth: Option<TruthTrack>,
+    /// map segments opened so far (`super::gauge`)
+    pub(super) segments: u32,
+    /// the segment new transmitters are born in (identities carry it)
+    pub(super) segment: u32,
+    /// segments no detection has tied to the anchored map yet, with their gauges
+    pub(super) open: Vec<Gauge>,
 }
 
 /// A bound track's detection as one particle saw it: the track, the log likelihood and the
@@ -98,6 +105,19 @@ impl Filter {
         let particles = (0..n)
             .map(|_| {
                 let dv: f64 = rng.sample(StandardNormal);
+                // drawn only when configured, so that a filter without them draws as before
+                let odometry = Calibration {
+                    gyro_bias: if cfg.gyro_bias_std_rad_per_s > 0.0 {
+                        cfg.gyro_bias_std_rad_per_s * rng.sample::<f64, _>(StandardNormal)
+                    } else {
+                        0.0
+                    },
+                    speed_scale: if cfg.speed_scale_std > 0.0 {
+                        1.0 + cfg.speed_scale_std * rng.sample::<f64, _>(StandardNormal)
+                    } else {
+                        1.0
+                    },
+                };
                 Particle {
                     pose: Pose {
                         x: 0.0,
@@ -111,6 +131,8 @@ impl Filter {
                     prior_used: Vec::new(),
                     prior_frame: None,
                     pending: Vec::new(),
+                    anchors: Vec::new(),
+                    odometry,
                 }
             })
             .collect();
@@ -131,6 +153,9 @@ impl Filter {
             prior: None,
             outliers: 0,
             truth: None,
+            segments: 0,
+            segment: 0,
+            open: Vec::new(),
         }
     }
     /// whether the log's measurements carry an angle of arrival
@@ -271,12 +296,19 @@ impl Filter {
     pub fn step(&mut self, snap: &Snapshot) -> StepStats {
         let dt = self.prev_t.map(|t| (snap.t - t).max(0.0)).unwrap_or(0.0);
         self.prev_t = Some(snap.t);
+        // A silent stretch ends with detections of new tracks only: a new map segment.
+        let hold = self.cfg.track_hold_s + 1e-9;
+        let alive_before = self.last_seen.values().any(|t| snap.t - *t <= hold);
+        let all_fresh = snap
+            .components
+            .iter()
+            .all(|c| !self.track_identity.contains_key(&c.track));
+        self.open_segment(!alive_before && all_fresh && !snap.components.is_empty());
         // Register identities of new tracks (deterministic order) before the parallel part.
         for c in &snap.components {
             self.last_seen.insert(c.track, snap.t);
         }
         // Tracks alive now: detected within the log's hold time (this snapshot by default).
-        let hold = self.cfg.track_hold_s + 1e-9;
         let current: BTreeSet<u64> = self
             .last_seen
             .iter()
@@ -288,7 +320,10 @@ impl Filter {
             if !self.track_identity.contains_key(&c.track) {
                 fresh.insert(c.track);
                 let id = self.identities.len() as u32;
-                self.identities.push(Identity { track: c.track });
+                self.identities.push(Identity {
+                    track: c.track,
+                    segment: self.segment,
+                });
                 self.track_identity.insert(c.track, id);
             }
         }
@@ -397,9 +432,11 @@ impl Filter {
         if snap.estimate {
             self.update_visibility(&w, &mean, &current);
         }
+        self.tie_segment(&w, &current);
         let resampled = ess < self.cfg.resample_ess_ratio * self.particles.len() as f64;
         if resampled {
             self.resample(&w);
+            self.restore_gauge();
         } else {
             // the weights are those `after` totals (nothing reweighted them since)
             for p in &mut self.particles {

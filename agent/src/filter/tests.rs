@@ -69,11 +69,15 @@ fn sim(s: &Scenario, seed: u64) -> SimOutput {
     .unwrap()
 }
 
+/// The configuration a run of a simulated log resolves to: the simulator states that its
+/// gyroscope has no bias (and its logs carry no speed).
 fn cfg(seed: u64, particles: usize) -> FilterConfig {
     FilterConfig {
         particles,
         seed,
         initial_speed_mps: 1.0,
+        gyro_bias_std_rad_per_s: 0.0,
+        speed_scale_std: 0.0,
         ..FilterConfig::default()
     }
 }
@@ -1135,65 +1139,100 @@ fn position_nees_measures_the_truth_against_the_clouds_ellipse() {
     assert!(f.position_nees(3.0, 3.1).is_infinite());
 }
 
-#[test]
-fn the_motion_model_alone_reports_an_honest_uncertainty() {
-    // A walk whose odometry errors are drawn from exactly the filter's motion model (heading
-    // random walk, speed measurement noise), with no radio at all: the particle cloud then
-    // is the true posterior, and the truth must lie inside its 95 % ellipse in about 95 % of
-    // the snapshots (`coverage95` of summary.json). One walk's snapshots are strongly
-    // correlated (its error is one random walk), so the share is pooled over 100 short walks
-    // (200 particles each); its spread over such sets is about ±0.01.
+/// A walk at 1.5 m/s, 10 Hz, whose odometry errors are drawn from the filter's own motion
+/// model and calibration priors in `c` (heading random walk, speed measurement noise, a
+/// constant gyroscope bias and speed scale): `rate(t)` is the true turn rate, `detect(k, x, y,
+/// heading, rng)` the snapshot's components as JSON. The parsed log and ground truth.
+fn model_walk(
+    c: &FilterConfig,
+    seed: u64,
+    steps: usize,
+    rate: impl Fn(f64) -> f64,
+    mut detect: impl FnMut(usize, f64, f64, f64, &mut rand_chacha::ChaCha8Rng) -> Vec<String>,
+) -> (
+    echomap_shared::log::MeasurementLog,
+    echomap_shared::log::GroundTruth,
+) {
     use rand::SeedableRng;
     use rand_distr::{Distribution, Normal};
-    let c = FilterConfig::default();
     let dt = 0.1;
+    let v = 1.5;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let n = Normal::new(0.0, 1.0).unwrap();
+    let bias = c.gyro_bias_std_rad_per_s * n.sample(&mut rng);
+    let scale = 1.0 + c.speed_scale_std * n.sample(&mut rng);
+    let (mut x, mut y, mut h) = (0.0f64, 0.0f64, 0.0f64);
+    let mut log = String::from(
+        r#"{"format":"echomap.log.v1","snapshot_rate_hz":10.0,"aoa":true,"speed":true}"#,
+    );
+    log.push('\n');
+    let mut poses = Vec::new();
+    for k in 0..steps {
+        let t = k as f64 * dt;
+        let (gyro, v_meas) = if k == 0 {
+            (0.0, v)
+        } else {
+            // the true heading turns by the gyro's rate less its bias plus the noise
+            let rate = rate(t);
+            let sigma = (c.heading_noise_rad_per_sqrt_s.powi(2) * dt
+                + c.heading_noise_rad_per_sqrt_rad.powi(2) * (rate * dt).abs())
+            .sqrt();
+            let h_new = h + rate * dt + sigma * n.sample(&mut rng);
+            let h_mid = h + 0.5 * (h_new - h);
+            x += v * dt * h_mid.cos();
+            y += v * dt * h_mid.sin();
+            h = h_new;
+            (
+                rate + bias,
+                v / scale + c.speed_measurement_std_mps * n.sample(&mut rng),
+            )
+        };
+        let comps = detect(k, x, y, h, &mut rng);
+        log.push_str(&format!(
+            r#"{{"t":{t},"gyro":{gyro},"speed":{v_meas},"components":[{}]}}"#,
+            comps.join(",")
+        ));
+        log.push('\n');
+        poses.push(format!(
+            r#"{{"t":{t},"x":{x},"y":{y},"heading_rad":{h},"speed_mps":{v}}}"#
+        ));
+    }
+    let truth = format!(
+        r#"{{"format":"echomap.truth.v1","world_from_local":{{"angle_rad":0.0,"translation":[0.0,0.0]}},"poses":[{}],"transmitters":[]}}"#,
+        poses.join(",")
+    );
+    (
+        echomap_shared::log::MeasurementLog::parse(&log).unwrap(),
+        echomap_shared::log::GroundTruth::parse(&truth).unwrap(),
+    )
+}
+
+#[test]
+fn the_motion_model_alone_reports_an_honest_uncertainty() {
+    // A walk whose odometry errors are drawn from exactly the filter's motion model and
+    // calibration priors, with no radio at all: the particle cloud then is the true posterior,
+    // and the truth must lie inside its 95 % ellipse in about 95 % of the snapshots
+    // (`coverage95` of summary.json). One walk's snapshots are strongly correlated (its error
+    // is one random walk), so the share is pooled over 100 short walks (200 particles each); its
+    // spread over such sets is about ±0.01.
+    let c = FilterConfig::default();
     let mut coverage = Vec::new();
     for seed in 1..=100u64 {
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1000 + seed);
-        let n = Normal::new(0.0, 1.0).unwrap();
-        let (mut x, mut y, mut h) = (0.0f64, 0.0f64, 0.0f64);
-        let mut log = String::from(
-            r#"{"format":"echomap.log.v1","snapshot_rate_hz":10.0,"aoa":true,"speed":true}"#,
+        // a gentle slalom
+        let (log, truth) = model_walk(
+            &c,
+            1000 + seed,
+            200,
+            |t| 0.3 * (0.05 * t).sin(),
+            |_, _, _, _, _| Vec::new(),
         );
-        log.push('\n');
-        let mut poses = Vec::new();
-        for k in 0..200 {
-            let t = k as f64 * dt;
-            let (gyro, v_meas, v) = if k == 0 {
-                (0.0, 1.5, 1.5)
-            } else {
-                // a gentle slalom; the true heading turns by the gyro's rate plus the noise
-                let rate = 0.3 * (0.05 * t).sin();
-                let sigma = (c.heading_noise_rad_per_sqrt_s.powi(2) * dt
-                    + c.heading_noise_rad_per_sqrt_rad.powi(2) * (rate * dt).abs())
-                .sqrt();
-                let h_new = h + rate * dt + sigma * n.sample(&mut rng);
-                let v = 1.5;
-                let h_mid = h + 0.5 * (h_new - h);
-                x += v * dt * h_mid.cos();
-                y += v * dt * h_mid.sin();
-                h = h_new;
-                (
-                    rate,
-                    v + c.speed_measurement_std_mps * n.sample(&mut rng),
-                    v,
-                )
-            };
-            log.push_str(&format!(
-                r#"{{"t":{t},"gyro":{gyro},"speed":{v_meas},"components":[]}}"#
-            ));
-            log.push('\n');
-            poses.push(format!(
-                r#"{{"t":{t},"x":{x},"y":{y},"heading_rad":{h},"speed_mps":{v}}}"#
-            ));
-        }
-        let truth = format!(
-            r#"{{"format":"echomap.truth.v1","world_from_local":{{"angle_rad":0.0,"translation":[0.0,0.0]}},"poses":[{}],"transmitters":[]}}"#,
-            poses.join(",")
-        );
-        let log = echomap_shared::log::MeasurementLog::parse(&log).unwrap();
-        let truth = echomap_shared::log::GroundTruth::parse(&truth).unwrap();
-        let out = run_filter(&log, Some(&truth), cfg(seed, 200), false).unwrap();
+        let fc = FilterConfig {
+            gyro_bias_std_rad_per_s: c.gyro_bias_std_rad_per_s,
+            speed_scale_std: c.speed_scale_std,
+            initial_speed_mps: 1.5,
+            ..cfg(seed, 200)
+        };
+        let out = run_filter(&log, Some(&truth), fc, false).unwrap();
         coverage.push(crate::output::coverage95(&out.rows));
     }
     let mean = coverage.iter().sum::<f64>() / coverage.len() as f64;
@@ -1202,4 +1241,71 @@ fn the_motion_model_alone_reports_an_honest_uncertainty() {
         "coverage {mean}: {coverage:?}"
     );
     eprintln!("motion-only coverage over 100 walks: {mean:.3}");
+}
+
+#[test]
+fn a_map_segment_after_a_silent_stretch_keeps_dead_reckonings_gauge() {
+    // 20 s of walking with no detection (the odometry's errors drawn from the filter's own
+    // motion model and calibration priors, so the cloud is the true posterior and spreads by
+    // metres), then 10 s past six transmitters seen for the first time (clock offsets
+    // unknown). Ranges and angles of arrival from transmitters every particle starts from its
+    // own pose say nothing of where that pose is, so the best estimate of it stays dead
+    // reckoning's. With `keep_gauge = false` resampling settles on one lineage's, a random
+    // draw from the cloud; kept, the track's error over the radio stretch (the weighted
+    // mean's, pooled over 24 walks of 100 particles) is lower.
+    use rand_distr::{Distribution, Normal};
+    let c = FilterConfig::default();
+    let txs = [
+        (30.0, 12.0, 3.0),
+        (38.0, -9.0, 11.0),
+        (45.0, 15.0, 0.0),
+        (52.0, -14.0, 6.5),
+        (60.0, 10.0, 2.0),
+        (25.0, -20.0, 15.0),
+    ];
+    let n = Normal::new(0.0, 1.0).unwrap();
+    let error_of = |keep_gauge: bool| {
+        let mut sum = 0.0;
+        let mut total = 0usize;
+        for seed in 1..=24u64 {
+            let (log, truth) = model_walk(
+                &c,
+                2000 + seed,
+                300,
+                |_| 0.0,
+                |k, x, y, h, rng| {
+                    if k < 200 {
+                        return Vec::new();
+                    }
+                    txs.iter()
+                        .enumerate()
+                        .map(|(i, (tx, ty, b))| {
+                            let (dx, dy) = (tx - x, ty - y);
+                            let d = dx.hypot(dy) + b + 0.1 * n.sample(rng);
+                            let a =
+                                echomap_shared::wrap_angle(dy.atan2(dx) - h + 0.02 * n.sample(rng));
+                            format!(r#"{{"track":{},"d":{d},"aoa":{a},"snr_db":30.0}}"#, i + 1)
+                        })
+                        .collect()
+                },
+            );
+            let mut fc = cfg(seed, 100);
+            fc.initial_speed_mps = 1.5;
+            fc.keep_gauge = keep_gauge;
+            fc.gyro_bias_std_rad_per_s = c.gyro_bias_std_rad_per_s;
+            fc.speed_scale_std = c.speed_scale_std;
+            fc.noise.distance_floor_m = 0.1;
+            fc.noise.aoa_floor_rad = 0.02;
+            let out = run_filter(&log, Some(&truth), fc, false).unwrap();
+            for r in &out.rows[200..] {
+                total += 1;
+                sum += r.truth.unwrap().err_m;
+            }
+        }
+        sum / total as f64
+    };
+    let kept = error_of(true);
+    let lost = error_of(false);
+    eprintln!("mean error over the radio stretch: gauge kept {kept:.3} m, not kept {lost:.3} m");
+    assert!(kept < 0.9 * lost, "kept {kept}, lost {lost}");
 }

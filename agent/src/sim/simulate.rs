@@ -35,7 +35,7 @@ use echomap_shared::log::{
     GroundTruth, LOG_FORMAT, LogHeader, Measurement, MeasurementLog, Snapshot, TRUTH_FORMAT,
     TruePose, TrueTransmitter,
 };
-use echomap_shared::sensor::{NoiseLaw, SensorProfile};
+use echomap_shared::sensor::{NoiseLaw, OdometryNoise, SensorProfile};
 use echomap_shared::wrap_angle;
 use nalgebra::{Isometry2, Point2};
 use rand::{RngExt, SeedableRng};
@@ -144,6 +144,12 @@ impl Scenario {
             // the simulated estimator's errors are the noise laws alone, Gaussian
             outlier_probability: Some(0.0),
             noise_dof: Some(0.0),
+            // the gyroscope's bias as configured (a data sheet's bound); no measured speed
+            odometry: Some(OdometryNoise {
+                gyro_bias_rad_per_s: Some(self.gyro.bias_rad_s.abs()),
+                speed_scale: Some(0.0),
+                ..Default::default()
+            }),
             ..Default::default()
         }
     }
