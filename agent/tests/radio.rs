@@ -165,6 +165,7 @@ mod cir_files {
             snapshot_rate_hz: 10.0,
             speed: true,
             source: Some("test".into()),
+            odometry: None,
             snapshots: (0..3)
                 .map(|k| CirSnapshot {
                     t: k as f64 * 0.1,
@@ -346,4 +347,10 @@ fn the_front_end_finds_the_paths_with_a_circular_array_too() {
     let dof = sensor.noise_dof.expect("the front end states its tails");
     println!("front end, circular array: tails of a Student-t with ν = {dof}");
     assert!(dof == 0.0 || (1.0..=30.0).contains(&dof), "ν = {dof}");
+    // the simulated odometry's description passes through the channel file: its gyroscope
+    // has the scenario's bias (none), not the data-sheet default of a log that states nothing
+    let odometry = sensor
+        .odometry
+        .expect("the simulator's odometry is passed on");
+    assert_eq!(odometry.gyro_bias_rad_per_s, Some(0.0));
 }

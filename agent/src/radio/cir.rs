@@ -64,6 +64,10 @@ pub struct CirMeta {
     pub speed: bool,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub source: Option<String>,
+    /// the odometry's error model, as a log's sensor profile states it: `estimate` passes it
+    /// on to the log it writes
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub odometry: Option<echomap_shared::sensor::OdometryNoise>,
     pub snapshots: Vec<CirSnapshot>,
 }
 

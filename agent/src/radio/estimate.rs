@@ -187,6 +187,7 @@ pub fn front_end(cir: &Cir, cfg: &FrontEndConfig) -> (MeasurementLog, FrontEndSt
             at_0db: crb_a,
         }),
         noise_dof: Some(dof),
+        odometry: meta.odometry,
         ..Default::default()
     };
     let header = LogHeader {

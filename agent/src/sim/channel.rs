@@ -54,6 +54,7 @@ pub fn synthesize(
         snapshot_rate_hz: log.header.snapshot_rate_hz,
         speed: log.header.speed,
         source: log.header.source.clone(),
+        odometry: log.header.sensor.as_ref().and_then(|s| s.odometry),
         snapshots: log
             .snapshots
             .iter()
