@@ -234,7 +234,7 @@ impl Default for FilterConfig {
             heading_noise_rad_per_sqrt_rad: 0.0,
             speed_noise_mps_per_sqrt_s: 0.03,
             proposal: Proposal::Informed,
-            keep_gauge: true,
+            keep_gauge: false,
             speed_measurement_std_mps: 0.05,
             // a MEMS gyroscope's bias stability after turn-on and a step length or wheel
             // radius known to a few per cent: data-sheet classes, for logs that do not state
