@@ -1215,7 +1215,12 @@ fn the_motion_model_alone_reports_an_honest_uncertainty() {
     // (`coverage95` of summary.json). One walk's snapshots are strongly correlated (its error
     // is one random walk), so the share is pooled over 100 short walks (200 particles each); its
     // spread over such sets is about ±0.01.
-    let c = FilterConfig::default();
+    // the calibration priors of a MEMS gyroscope and a step counter
+    let c = FilterConfig {
+        gyro_bias_std_rad_per_s: 0.005,
+        speed_scale_std: 0.03,
+        ..FilterConfig::default()
+    };
     let mut coverage = Vec::new();
     for seed in 1..=100u64 {
         // a gentle slalom
@@ -1254,7 +1259,11 @@ fn a_map_segment_after_a_silent_stretch_keeps_dead_reckonings_gauge() {
     // draw from the cloud; kept, the track's error over the radio stretch (the weighted
     // mean's, pooled over 24 walks of 100 particles) is lower.
     use rand_distr::{Distribution, Normal};
-    let c = FilterConfig::default();
+    let c = FilterConfig {
+        gyro_bias_std_rad_per_s: 0.005,
+        speed_scale_std: 0.03,
+        ..FilterConfig::default()
+    };
     let txs = [
         (30.0, 12.0, 3.0),
         (38.0, -9.0, 11.0),
