@@ -109,6 +109,9 @@ impl Filter {
     /// or one tied to it) the segment is anchored too; to an open one the two become one
     /// segment with the earlier one's gauge.
     pub(super) fn tie_segment(&mut self, w: &[f64], current: &BTreeSet<u64>) {
+        if self.open.is_empty() {
+            return;
+        }
         if self.prior.is_some() {
             self.open.clear();
             for p in &mut self.particles {

@@ -298,12 +298,14 @@ impl Filter {
         self.prev_t = Some(snap.t);
         // A silent stretch ends with detections of new tracks only: a new map segment.
         let hold = self.cfg.track_hold_s + 1e-9;
-        let alive_before = self.last_seen.values().any(|t| snap.t - *t <= hold);
-        let all_fresh = snap
-            .components
-            .iter()
-            .all(|c| !self.track_identity.contains_key(&c.track));
-        self.open_segment(!alive_before && all_fresh && !snap.components.is_empty());
+        if self.cfg.keep_gauge && !snap.components.is_empty() {
+            let quiet = !self.last_seen.values().any(|t| snap.t - *t <= hold)
+                && snap
+                    .components
+                    .iter()
+                    .all(|c| !self.track_identity.contains_key(&c.track));
+            self.open_segment(quiet);
+        }
         // Register identities of new tracks (deterministic order) before the parallel part.
         for c in &snap.components {
             self.last_seen.insert(c.track, snap.t);
