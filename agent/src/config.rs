@@ -37,6 +37,9 @@ use std::path::Path;
 pub struct RunConfig {
     /// number of user particles
     pub particles: usize,
+    /// independent filters the particles are split into; the run reports their equally
+    /// weighted mixture, whose spread includes the scatter between them (1 = one filter)
+    pub islands: usize,
     pub motion: MotionConfig,
     pub measurement: MeasurementConfig,
     pub association: AssociationConfig,
@@ -160,6 +163,7 @@ impl Default for RunConfig {
         let p = PriorSettings::default();
         RunConfig {
             particles: f.particles,
+            islands: f.islands,
             motion: MotionConfig {
                 heading_noise_rad_per_sqrt_s: f.heading_noise_rad_per_sqrt_s,
                 heading_noise_rad_per_sqrt_rad: f.heading_noise_rad_per_sqrt_rad,
@@ -305,6 +309,12 @@ impl RunConfig {
         if self.particles < 1 {
             return bad("particles", "must be at least 1".into());
         }
+        if self.islands < 1 || self.islands > self.particles {
+            return bad(
+                "islands",
+                format!("must be between 1 and the particles ({})", self.particles),
+            );
+        }
         let m = &self.motion;
         let x = &self.measurement;
         let a = &self.association;
@@ -415,6 +425,7 @@ impl RunConfig {
         });
         FilterConfig {
             particles: self.particles,
+            islands: self.islands,
             seed,
             association: a.method,
             b_prior,
@@ -1038,6 +1049,10 @@ mod tests {
         assert!(e.contains("measurement.outlier_probability"), "{e}");
         let e = err(&["particles=0"]);
         assert!(e.contains("at least 1"), "{e}");
+        for bad in ["islands=0", "islands=2000"] {
+            let e = err(&[bad, "particles=1000"]);
+            assert!(e.contains("islands") && e.contains("between 1 and"), "{e}");
+        }
         let e = err(&["prior.match_every_s=0"]);
         assert!(e.contains("prior.match_every_s"), "{e}");
         assert!(parse_set("no-equals").is_err());

@@ -244,6 +244,8 @@ pub struct LogRun {
     pub dead_reckoning_final_m: f64,
     /// mean MAE over dead reckoning's mean error
     pub ratio: f64,
+    /// mean error of the reported position (`error_mean_m`) over dead reckoning's
+    pub error_ratio: f64,
     pub coverage95: f64,
 }
 
@@ -257,6 +259,10 @@ pub struct LogsSummary {
     pub median_ratio: f64,
     /// logs whose mean ratio is above 1 (worse than their own odometry)
     pub logs_above_1: usize,
+    /// the same three for the error of the reported position (`error_ratio`)
+    pub log_error_ratio: Vec<(String, f64)>,
+    pub median_error_ratio: f64,
+    pub logs_error_above_1: usize,
     /// mean over all runs of coverage95
     pub mean_coverage95: f64,
 }
@@ -308,6 +314,7 @@ pub fn evaluate_logs(
                 dead_reckoning_mean_m: dr,
                 dead_reckoning_final_m: s.dead_reckoning_final_m.unwrap_or(f64::NAN),
                 ratio: s.mae_mean_m / dr,
+                error_ratio: s.error_mean_m / dr,
                 coverage95: s.coverage95,
             });
             bar.inc(1);
@@ -324,20 +331,35 @@ pub fn evaluate_logs(
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     let log_ratio: Vec<(String, f64)> = per_log.iter().map(|(n, v)| (n.clone(), mean(v))).collect();
     let ratios: Vec<f64> = log_ratio.iter().map(|x| x.1).collect();
+    let log_error_ratio: Vec<(String, f64)> = cases
+        .iter()
+        .map(|c| {
+            let v: Vec<f64> = runs
+                .iter()
+                .filter(|r| r.log == c.name)
+                .map(|r| r.error_ratio)
+                .collect();
+            (c.name.clone(), mean(&v))
+        })
+        .collect();
+    let error_ratios: Vec<f64> = log_error_ratio.iter().map(|x| x.1).collect();
     let summary = LogsSummary {
         median_ratio: percentile(&ratios, 0.5),
         logs_above_1: ratios.iter().filter(|&&r| r > 1.0).count(),
+        median_error_ratio: percentile(&error_ratios, 0.5),
+        logs_error_above_1: error_ratios.iter().filter(|&&r| r > 1.0).count(),
+        log_error_ratio,
         mean_coverage95: mean(&runs.iter().map(|r| r.coverage95).collect::<Vec<_>>()),
         log_ratio,
         runs,
     };
     std::fs::create_dir_all(out)?;
     let mut csv = String::from(
-        "log,seed,mae_mean_m,mae_final_m,dead_reckoning_mean_m,dead_reckoning_final_m,ratio,coverage95\n",
+        "log,seed,mae_mean_m,mae_final_m,dead_reckoning_mean_m,dead_reckoning_final_m,ratio,coverage95,error_ratio\n",
     );
     for r in &summary.runs {
         csv.push_str(&format!(
-            "{},{},{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{},{},{},{}\n",
             r.log,
             r.seed,
             r.mae_mean_m,
@@ -345,7 +367,8 @@ pub fn evaluate_logs(
             r.dead_reckoning_mean_m,
             r.dead_reckoning_final_m,
             r.ratio,
-            r.coverage95
+            r.coverage95,
+            r.error_ratio
         ));
     }
     std::fs::write(out.join("runs.csv"), csv)?;
@@ -371,9 +394,11 @@ pub fn evaluate_logs(
 /// The per-log table of [`evaluate_logs`] in Markdown.
 fn logs_markdown(s: &LogsSummary, cases: &[LogCase]) -> String {
     let mut md = String::from(
-        "| log | DR mean (m) | filter mean MAE per seed (m) | ratio per seed | mean ratio | coverage95 (mean) |\n| --- | --- | --- | --- | --- | --- |\n",
+        "| log | DR mean (m) | filter mean MAE per seed (m) | ratio per seed | mean ratio | error of the reported position / DR (mean) | coverage95 (mean) |\n| --- | --- | --- | --- | --- | --- | --- |\n",
     );
-    for (c, (_, ratio)) in cases.iter().zip(&s.log_ratio) {
+    for ((c, (_, ratio)), (_, error_ratio)) in
+        cases.iter().zip(&s.log_ratio).zip(&s.log_error_ratio)
+    {
         let runs: Vec<&LogRun> = s.runs.iter().filter(|r| r.log == c.name).collect();
         let join = |f: &dyn Fn(&LogRun) -> f64| {
             runs.iter()
@@ -383,7 +408,7 @@ fn logs_markdown(s: &LogsSummary, cases: &[LogCase]) -> String {
         };
         let cov = runs.iter().map(|r| r.coverage95).sum::<f64>() / runs.len().max(1) as f64;
         md.push_str(&format!(
-            "| {} | {:.2} | {} | {} | {:.2} | {:.2} |\n",
+            "| {} | {:.2} | {} | {} | {:.2} | {:.2} | {:.2} |\n",
             c.name,
             runs.first()
                 .map(|r| r.dead_reckoning_mean_m)
@@ -391,14 +416,17 @@ fn logs_markdown(s: &LogsSummary, cases: &[LogCase]) -> String {
             join(&|r| r.mae_mean_m),
             join(&|r| r.ratio),
             ratio,
+            error_ratio,
             cov
         ));
     }
     md.push_str(&format!(
-        "\nMedian over the {} logs of the mean ratio: **{:.2}**; logs above 1.0: **{}**; mean coverage of the 95 % ellipse: {:.2}.\n",
+        "\nMedian over the {} logs of the mean ratio: **{:.2}**; logs above 1.0: **{}**; of the reported position's error: **{:.2}**, above 1.0: **{}**; mean coverage of the 95 % ellipse: {:.2}.\n",
         cases.len(),
         s.median_ratio,
         s.logs_above_1,
+        s.median_error_ratio,
+        s.logs_error_above_1,
         s.mean_coverage95
     ));
     md

@@ -18,6 +18,10 @@ pub struct RunSummary {
     pub mae_final_m: f64,
     pub mae_mean_m: f64,
     pub mae_max_m: f64,
+    /// mean and final error of the reported position (the weighted mean, `err_m`); equal to
+    /// the MAE for a collapsed cloud, below it when the cloud (or the islands) spread
+    pub error_mean_m: f64,
+    pub error_final_m: f64,
     pub rmse_max_m: f64,
     /// OSPA (Li et al. 2019 eq. 43), cut-off 5 m, order 1, in [x, y, b]
     pub map_ospa_m: f64,
@@ -57,6 +61,11 @@ pub fn summarize(out: &RunOutput, truth: &GroundTruth, log: &MeasurementLog) -> 
         .iter()
         .filter_map(|r| r.truth.map(|t| t.mae_m))
         .collect();
+    let err: Vec<f64> = out
+        .rows
+        .iter()
+        .filter_map(|r| r.truth.map(|t| t.err_m))
+        .collect();
     let rmse_max = out
         .rows
         .iter()
@@ -87,6 +96,8 @@ pub fn summarize(out: &RunOutput, truth: &GroundTruth, log: &MeasurementLog) -> 
         mae_final_m: mae.last().copied().unwrap_or(f64::NAN),
         mae_mean_m: mae.iter().sum::<f64>() / mae.len().max(1) as f64,
         mae_max_m: mae.iter().cloned().fold(0.0, f64::max),
+        error_mean_m: err.iter().sum::<f64>() / err.len().max(1) as f64,
+        error_final_m: err.last().copied().unwrap_or(f64::NAN),
         rmse_max_m: rmse_max,
         map_ospa_m: ospa,
         converged_transmitters: n_est,

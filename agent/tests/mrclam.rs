@@ -215,6 +215,15 @@ fn evaluating_recorded_logs_agrees_with_single_runs_and_refuses_a_log_without_tr
     assert!((num(&row[2]) - mae).abs() < 1e-9, "{row:?} against {mae}");
     assert!((num(&row[4]) - dr).abs() < 1e-9, "{row:?} against {dr}");
     assert!((num(&row[6]) - mae / dr).abs() < 1e-9);
+    let err = single["error_mean_m"].as_f64().unwrap();
+    assert!(
+        err <= mae + 1e-9,
+        "the mean's error {err} above the MAE {mae}"
+    );
+    assert!(
+        (num(&row[8]) - err / dr).abs() < 1e-9,
+        "{row:?} against {err}"
+    );
     // the per-log means and their median
     let mean_of = |name: &str| {
         let v: Vec<f64> = rows

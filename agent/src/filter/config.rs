@@ -126,6 +126,9 @@ impl NoiseModel {
 pub struct FilterConfig {
     /// number of user particles
     pub particles: usize,
+    /// independent particle filters ("islands", Vergé et al. 2015) the particles are split
+    /// into; the run reports their equally weighted mixture (`crate::run`)
+    pub islands: usize,
     /// seed of every random draw
     pub seed: u64,
     pub association: Association,
@@ -228,6 +231,7 @@ impl Default for FilterConfig {
     fn default() -> Self {
         FilterConfig {
             particles: 1000,
+            islands: 1,
             seed: 1,
             association: Association::Ml,
             heading_noise_rad_per_sqrt_s: 0.03,

@@ -154,7 +154,7 @@ pub struct MatchEvent {
 }
 
 /// Periodic matching of the agent's map against a prior map (map frame).
-#[derive(Debug)]
+#[derive(Debug, Clone)]
 pub struct PriorTracker {
     map: TransmitterMap,
     settings: PriorSettings,

@@ -75,6 +75,22 @@ pub struct Filter {
     pub(super) open: Vec<Gauge>,
 }
 
+/// `(p − m)ᵀ C⁻¹ (p − m)` of a position `p` under mean `m` and covariance `C = [xx, xy, yy]`;
+/// infinite for a singular `C` unless `p = m`.
+pub fn nees(mean: [f64; 2], cov: [f64; 3], x: f64, y: f64) -> f64 {
+    let [sxx, sxy, syy] = cov;
+    let (ex, ey) = (x - mean[0], y - mean[1]);
+    let det = sxx * syy - sxy * sxy;
+    if det <= 0.0 || det.is_nan() {
+        return if ex == 0.0 && ey == 0.0 {
+            0.0
+        } else {
+            f64::INFINITY
+        };
+    }
+    (syy * ex * ex - 2.0 * sxy * ex * ey + sxx * ey * ey) / det
+}
+
 /// A bound track's detection as one particle saw it: the track, the log likelihood and the
 /// transmitter before the update (restored if the detection turns out to be a gross error).
 pub(super) type Detection = (u64, f64, Arc<TxState>);
@@ -234,11 +250,8 @@ impl Filter {
         (mae, mse.sqrt())
     }
 
-    /// Normalized estimation error squared of a true position under the particle cloud's
-    /// weighted mean and covariance, `(p − p̂)ᵀ Σ⁻¹ (p − p̂)`: at most 5.991 (χ² with 2
-    /// degrees of freedom, 95 %) when the truth lies inside the 95 % ellipse the filter
-    /// reports. Infinite for a cloud collapsed to a point away from the truth.
-    pub fn position_nees(&self, true_x: f64, true_y: f64) -> f64 {
+    /// The particle cloud's weighted mean position and covariance `[xx, xy, yy]`.
+    pub fn position_moments(&self) -> ([f64; 2], [f64; 3]) {
         let w = self.weights();
         let (mut mx, mut my) = (0.0, 0.0);
         for (p, w) in self.particles.iter().zip(&w) {
@@ -252,16 +265,16 @@ impl Filter {
             sxy += w * dx * dy;
             syy += w * dy * dy;
         }
-        let (ex, ey) = (true_x - mx, true_y - my);
-        let det = sxx * syy - sxy * sxy;
-        if det <= 0.0 || det.is_nan() {
-            return if ex == 0.0 && ey == 0.0 {
-                0.0
-            } else {
-                f64::INFINITY
-            };
-        }
-        (syy * ex * ex - 2.0 * sxy * ex * ey + sxx * ey * ey) / det
+        ([mx, my], [sxx, sxy, syy])
+    }
+
+    /// Normalized estimation error squared of a true position under the particle cloud's
+    /// weighted mean and covariance, `(p − p̂)ᵀ Σ⁻¹ (p − p̂)`: at most 5.991 (χ² with 2
+    /// degrees of freedom, 95 %) when the truth lies inside the 95 % ellipse the filter
+    /// reports. Infinite for a cloud collapsed to a point away from the truth.
+    pub fn position_nees(&self, true_x: f64, true_y: f64) -> f64 {
+        let (mean, cov) = self.position_moments();
+        nees(mean, cov, true_x, true_y)
     }
 
     pub(super) fn particle_rng(&self, i: usize) -> ChaCha8Rng {

@@ -1258,46 +1258,12 @@ fn a_map_segment_after_a_silent_stretch_keeps_dead_reckonings_gauge() {
     // reckoning's. With `keep_gauge = false` resampling settles on one lineage's, a random
     // draw from the cloud; kept, the track's error over the radio stretch (the weighted
     // mean's, pooled over 24 walks of 100 particles) is lower.
-    use rand_distr::{Distribution, Normal};
-    let c = FilterConfig {
-        gyro_bias_std_rad_per_s: 0.005,
-        speed_scale_std: 0.03,
-        ..FilterConfig::default()
-    };
-    let txs = [
-        (30.0, 12.0, 3.0),
-        (38.0, -9.0, 11.0),
-        (45.0, 15.0, 0.0),
-        (52.0, -14.0, 6.5),
-        (60.0, 10.0, 2.0),
-        (25.0, -20.0, 15.0),
-    ];
-    let n = Normal::new(0.0, 1.0).unwrap();
+    let c = silent_stretch_config();
     let error_of = |keep_gauge: bool| {
         let mut sum = 0.0;
         let mut total = 0usize;
         for seed in 1..=24u64 {
-            let (log, truth) = model_walk(
-                &c,
-                2000 + seed,
-                300,
-                |_| 0.0,
-                |k, x, y, h, rng| {
-                    if k < 200 {
-                        return Vec::new();
-                    }
-                    txs.iter()
-                        .enumerate()
-                        .map(|(i, (tx, ty, b))| {
-                            let (dx, dy) = (tx - x, ty - y);
-                            let d = dx.hypot(dy) + b + 0.1 * n.sample(rng);
-                            let a =
-                                echomap_shared::wrap_angle(dy.atan2(dx) - h + 0.02 * n.sample(rng));
-                            format!(r#"{{"track":{},"d":{d},"aoa":{a},"snr_db":30.0}}"#, i + 1)
-                        })
-                        .collect()
-                },
-            );
+            let (log, truth) = silent_then_new_transmitters(&c, 2000 + seed);
             let mut fc = cfg(seed, 100);
             fc.initial_speed_mps = 1.5;
             fc.keep_gauge = keep_gauge;
@@ -1317,4 +1283,101 @@ fn a_map_segment_after_a_silent_stretch_keeps_dead_reckonings_gauge() {
     let lost = error_of(false);
     eprintln!("mean error over the radio stretch: gauge kept {kept:.3} m, not kept {lost:.3} m");
     assert!(kept < 0.9 * lost, "kept {kept}, lost {lost}");
+}
+
+/// The odometry of [`silent_then_new_transmitters`]: errors drawn from the filter's own motion
+/// model and data-sheet calibration priors.
+fn silent_stretch_config() -> FilterConfig {
+    FilterConfig {
+        gyro_bias_std_rad_per_s: 0.005,
+        speed_scale_std: 0.03,
+        ..FilterConfig::default()
+    }
+}
+
+/// 20 s of walking straight at 1.5 m/s with no detection, then 10 s past six transmitters
+/// seen for the first time (clock offsets unknown), 0.1 m and 0.02 rad of noise.
+fn silent_then_new_transmitters(
+    c: &FilterConfig,
+    seed: u64,
+) -> (
+    echomap_shared::log::MeasurementLog,
+    echomap_shared::log::GroundTruth,
+) {
+    use rand_distr::{Distribution, Normal};
+    let txs = [
+        (30.0, 12.0, 3.0),
+        (38.0, -9.0, 11.0),
+        (45.0, 15.0, 0.0),
+        (52.0, -14.0, 6.5),
+        (60.0, 10.0, 2.0),
+        (25.0, -20.0, 15.0),
+    ];
+    let n = Normal::new(0.0, 1.0).unwrap();
+    model_walk(
+        c,
+        seed,
+        300,
+        |_| 0.0,
+        |k, x, y, h, rng| {
+            if k < 200 {
+                return Vec::new();
+            }
+            txs.iter()
+                .enumerate()
+                .map(|(i, (tx, ty, b))| {
+                    let (dx, dy) = (tx - x, ty - y);
+                    let d = dx.hypot(dy) + b + 0.1 * n.sample(rng);
+                    let a = echomap_shared::wrap_angle(dy.atan2(dx) - h + 0.02 * n.sample(rng));
+                    format!(r#"{{"track":{},"d":{d},"aoa":{a},"snr_db":30.0}}"#, i + 1)
+                })
+                .collect()
+        },
+    )
+}
+
+#[test]
+fn independent_islands_report_the_uncertainty_one_population_loses() {
+    // After the silent stretch the new transmitters cannot say where the segment began, and
+    // one population settles on a random lineage's guess: its 95 % ellipse shrinks to
+    // centimetres around a point metres from the truth. Four islands of a quarter of the
+    // particles each settle on four independent guesses; their mixture's ellipse, which adds
+    // the scatter between them, covers the truth far more often, and its mean errs less.
+    let c = silent_stretch_config();
+    let run = |islands: usize| {
+        let (mut covered, mut err, mut total) = (0usize, 0.0, 0usize);
+        for seed in 1..=16u64 {
+            let (log, truth) = silent_then_new_transmitters(&c, 3000 + seed);
+            let mut fc = cfg(seed, 200);
+            fc.islands = islands;
+            fc.initial_speed_mps = 1.5;
+            fc.gyro_bias_std_rad_per_s = c.gyro_bias_std_rad_per_s;
+            fc.speed_scale_std = c.speed_scale_std;
+            fc.noise.distance_floor_m = 0.1;
+            fc.noise.aoa_floor_rad = 0.02;
+            let out = run_filter(&log, Some(&truth), fc, false).unwrap();
+            assert_eq!(out.filter.particles().len(), 200 / islands);
+            for r in &out.rows[200..] {
+                let t = r.truth.unwrap();
+                total += 1;
+                err += t.err_m;
+                covered += usize::from(t.nees <= 5.991);
+            }
+        }
+        (covered as f64 / total as f64, err / total as f64)
+    };
+    let (cov1, err1) = run(1);
+    let (cov4, err4) = run(4);
+    eprintln!(
+        "over the radio stretch: one population coverage {cov1:.2}, error {err1:.2} m; \
+         four islands coverage {cov4:.2}, error {err4:.2} m"
+    );
+    assert!(
+        cov4 > cov1 + 0.15,
+        "coverage {cov4} with islands, {cov1} without"
+    );
+    assert!(
+        err4 < 0.9 * err1,
+        "error {err4} with islands, {err1} without"
+    );
 }

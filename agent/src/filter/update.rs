@@ -144,7 +144,7 @@ impl Meas {
     }
 }
 
-pub(super) fn log_sum_exp(v: impl Iterator<Item = f64> + Clone) -> f64 {
+pub fn log_sum_exp(v: impl Iterator<Item = f64> + Clone) -> f64 {
     let max = v.clone().fold(f64::NEG_INFINITY, f64::max);
     if max == f64::NEG_INFINITY {
         return max;

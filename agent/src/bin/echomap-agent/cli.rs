@@ -701,14 +701,18 @@ pub fn run(cli: Cli) -> Result<()> {
                 });
             }
             let s = evaluate::evaluate_logs(&cases, a.seeds, a.first_seed, &a.out)?;
-            for (name, r) in &s.log_ratio {
-                println!("{name:>24}: mean error / dead reckoning's {r:.2}");
+            for ((name, r), (_, e)) in s.log_ratio.iter().zip(&s.log_error_ratio) {
+                println!(
+                    "{name:>24}: mean MAE / dead reckoning's mean error {r:.2}, the reported position's {e:.2}"
+                );
             }
             println!(
-                "median over {} logs {:.2}, logs above 1.0: {}, mean coverage95 {:.2}; wrote {}",
+                "median over {} logs {:.2} ({:.2} for the reported position), logs above 1.0: {} ({}), mean coverage95 {:.2}; wrote {}",
                 cases.len(),
                 s.median_ratio,
+                s.median_error_ratio,
                 s.logs_above_1,
+                s.logs_error_above_1,
                 s.mean_coverage95,
                 a.out.display()
             );
