@@ -85,7 +85,8 @@ pub fn run_filter_with_prior(
     let mut rows = Vec::with_capacity(log.snapshots.len());
     let mut true_traveled = 0.0;
     let mut traveled = 0.0;
-    let mut last_mean: Option<[f64; 2]> = None;
+    // from the origin, where every particle starts (as `StepStats::traveled_m`)
+    let mut last_mean = [0.0f64; 2];
     for (k, snap) in log.snapshots.iter().enumerate() {
         let mut stats = Vec::with_capacity(islands);
         for (filter, tracker) in filters.iter_mut().zip(trackers.iter_mut()) {
@@ -147,10 +148,8 @@ pub fn run_filter_with_prior(
             }
         } else {
             let mix = IslandMixture::of(&filters, &stats);
-            if let Some(m) = last_mean {
-                traveled += (mix.mean[0] - m[0]).hypot(mix.mean[1] - m[1]);
-            }
-            last_mean = Some(mix.mean);
+            traveled += (mix.mean[0] - last_mean[0]).hypot(mix.mean[1] - last_mean[1]);
+            last_mean = mix.mean;
             let truth_cols = truth.map(|t| {
                 let p = &t.poses[k];
                 let (mut mae, mut mse) = (0.0, 0.0);

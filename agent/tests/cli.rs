@@ -652,3 +652,63 @@ fn estimate_turns_a_simulated_channel_into_a_log_and_a_waterfall() {
         png.len()
     );
 }
+
+/// `islands` splits the particles into independent filters, also with a prior map: the run
+/// writes its configuration, one row per snapshot and a summary whose reported position errs
+/// no more than the islands' mean MAE; more islands than particles is refused, naming the key.
+#[test]
+fn islands_run_with_and_without_a_prior_and_are_validated() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim1, sim2) = (dir.path().join("sim1"), dir.path().join("sim2"));
+    simulate_indoor("user01", 4, &sim1);
+    simulate_indoor("user02", 4, &sim2);
+    let first = dir.path().join("first");
+    run_ok(&sim1, &first, 4, &["--set", "islands=2"]);
+    let prior = first.join("map.json");
+    assert!(
+        !echomap_shared::TransmitterMap::from_json(&std::fs::read_to_string(&prior).unwrap())
+            .unwrap()
+            .is_empty()
+    );
+    let (one, two) = (dir.path().join("one"), dir.path().join("two"));
+    let prior = prior.to_str().unwrap();
+    run_ok(&sim2, &one, 4, &["--prior", prior]);
+    run_ok(&sim2, &two, 4, &["--prior", prior, "--set", "islands=2"]);
+    let config = std::fs::read_to_string(two.join("config.toml")).unwrap();
+    assert!(config.contains("islands = 2"), "{config}");
+    let track = |d: &Path| std::fs::read_to_string(d.join("track.csv")).unwrap();
+    let log = std::fs::read_to_string(sim2.join("log.jsonl")).unwrap();
+    assert_eq!(track(&two).lines().count(), log.lines().count());
+    assert_ne!(track(&one), track(&two), "two islands are not one filter");
+    assert!(two.join("prior_matches.csv").exists());
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(two.join("summary.json")).unwrap()).unwrap();
+    let (err, mae) = (
+        summary["error_mean_m"].as_f64().unwrap(),
+        summary["mae_mean_m"].as_f64().unwrap(),
+    );
+    assert!(
+        err.is_finite() && err <= mae + 1e-9,
+        "error {err}, MAE {mae}"
+    );
+    let bad = dir.path().join("bad");
+    let st = agent()
+        .args([
+            "run",
+            "--particles",
+            "100",
+            "--quiet",
+            "--set",
+            "islands=101",
+        ])
+        .arg("--log")
+        .arg(&sim2)
+        .arg("--out")
+        .arg(&bad)
+        .output()
+        .unwrap();
+    assert!(!st.status.success());
+    let e = String::from_utf8_lossy(&st.stderr);
+    assert!(e.contains("islands"), "{e}");
+    assert!(!bad.join("track.csv").exists(), "nothing written");
+}
