@@ -83,6 +83,20 @@ pub struct Predicted<const M: usize> {
     pub pzz: SMatrix<f64, M, M>,
 }
 
+impl<const M: usize> Predicted<M> {
+    /// The same prediction with the noise factor `r_sqrt` in `P_zz` instead: the cubature
+    /// points and their images do not depend on the noise, so a second update of one
+    /// component with wider noise (the Student-t law's) costs no measurement evaluation.
+    pub fn with_noise(&self, r_sqrt: &SMatrix<f64, M, M>) -> Self {
+        Predicted {
+            z_hat: self.z_hat,
+            z_dev: self.z_dev,
+            x_dev: self.x_dev,
+            pzz: self.z_dev * self.z_dev.transpose() + r_sqrt * r_sqrt.transpose(),
+        }
+    }
+}
+
 /// Propagates the cubature points through `h`. `residual(a, b)` is `a − b` with angles
 /// wrapped; it is used for every difference in measurement space.
 pub fn predict<const M: usize>(
@@ -184,6 +198,18 @@ pub fn update<const M: usize>(
 ) -> Option<Updated> {
     let r = r_sqrt * r_sqrt.transpose();
     let p = predict(g, h, residual, &r);
+    update_predicted(g, z, r_sqrt, &p, residual)
+}
+
+/// [`update`] from the component's cubature prediction `p`, made with the noise `r_sqrt`
+/// (see [`Predicted::with_noise`] for another noise on the same points).
+pub fn update_predicted<const M: usize>(
+    g: &SqrtGaussian,
+    z: &SVector<f64, M>,
+    r_sqrt: &SMatrix<f64, M, M>,
+    p: &Predicted<M>,
+    residual: impl Fn(&SVector<f64, M>, &SVector<f64, M>) -> SVector<f64, M>,
+) -> Option<Updated> {
     let chol = p.pzz.cholesky()?;
     let innovation = residual(z, &p.z_hat);
     let pxz = p.x_dev * p.z_dev.transpose();

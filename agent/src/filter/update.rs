@@ -64,36 +64,24 @@ impl Meas {
     /// noise widened by [`srckf::student_t_noise_scale`] (the t law's own weight for it), so
     /// that one wild detection pulls the transmitter as little as it weighs.
     pub(super) fn update(&self, pose: &Pose, g: &SqrtGaussian) -> Option<srckf::Updated> {
-        let u = self.update_scaled(pose, g, 1.0)?;
-        let (dof, dim) = self.dof_and_dim();
-        if dof <= 0.0 {
-            return Some(u);
-        }
-        let d2 = u.d2;
-        let log_likelihood = srckf::student_t_log_density(u.log_likelihood, d2, dim, dof);
-        let scale = srckf::student_t_noise_scale(d2, dim, dof);
-        let mut out = if scale > 1.0 {
-            self.update_scaled(pose, g, scale.sqrt())?
-        } else {
-            u
-        };
-        out.log_likelihood = log_likelihood;
-        out.d2 = d2;
-        Some(out)
-    }
-
-    /// The update with the noise's standard deviations multiplied by `k`.
-    fn update_scaled(&self, pose: &Pose, g: &SqrtGaussian, k: f64) -> Option<srckf::Updated> {
         match self {
-            Meas::ToaAoa { z, r_sqrt, .. } => srckf::update(
-                g,
-                z,
-                &(r_sqrt * k),
-                |x| h_toa_aoa(pose, x),
-                residual_toa_aoa,
-            ),
-            Meas::Toa { z, r_sqrt, .. } => {
-                srckf::update(g, z, &(r_sqrt * k), |x| h_toa(pose, x), residual_toa)
+            Meas::ToaAoa { z, r_sqrt, dof } => {
+                let p = srckf::predict(
+                    g,
+                    |x| h_toa_aoa(pose, x),
+                    residual_toa_aoa,
+                    &(r_sqrt * r_sqrt.transpose()),
+                );
+                robust_update(g, z, r_sqrt, *dof, &p, residual_toa_aoa)
+            }
+            Meas::Toa { z, r_sqrt, dof } => {
+                let p = srckf::predict(
+                    g,
+                    |x| h_toa(pose, x),
+                    residual_toa,
+                    &(r_sqrt * r_sqrt.transpose()),
+                );
+                robust_update(g, z, r_sqrt, *dof, &p, residual_toa)
             }
         }
     }
@@ -142,6 +130,40 @@ impl Meas {
             Meas::Toa { .. } => None,
         }
     }
+}
+
+/// The update of a component from its prediction `p` under the noise `r_sqrt`, with a
+/// Student-t law of `dof` degrees of freedom (0: Gaussian): the t density of the innovation,
+/// and for a detection in the tails the update repeated from the same cubature points with
+/// the noise widened by [`srckf::student_t_noise_scale`].
+fn robust_update<const M: usize>(
+    g: &SqrtGaussian,
+    z: &nalgebra::SVector<f64, M>,
+    r_sqrt: &nalgebra::SMatrix<f64, M, M>,
+    dof: f64,
+    p: &srckf::Predicted<M>,
+    residual: impl Fn(
+        &nalgebra::SVector<f64, M>,
+        &nalgebra::SVector<f64, M>,
+    ) -> nalgebra::SVector<f64, M>
+    + Copy,
+) -> Option<srckf::Updated> {
+    let u = srckf::update_predicted(g, z, r_sqrt, p, residual)?;
+    if dof <= 0.0 {
+        return Some(u);
+    }
+    let d2 = u.d2;
+    let log_likelihood = srckf::student_t_log_density(u.log_likelihood, d2, M, dof);
+    let scale = srckf::student_t_noise_scale(d2, M, dof);
+    let mut out = if scale > 1.0 {
+        let wide = r_sqrt * scale.sqrt();
+        srckf::update_predicted(g, z, &wide, &p.with_noise(&wide), residual)?
+    } else {
+        u
+    };
+    out.log_likelihood = log_likelihood;
+    out.d2 = d2;
+    Some(out)
 }
 
 pub fn log_sum_exp(v: impl Iterator<Item = f64> + Clone) -> f64 {
