@@ -9,11 +9,18 @@ use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
 /// Wraps an angle to (−π, π].
+#[inline]
 pub fn wrap_angle(angle_rad: f64) -> f64 {
-    // Fast path: the hot callers pass angles within one turn of the range.
+    // Fast path, inlined into the filter's hot loop: the hot callers pass angles within one
+    // turn of the range.
     if angle_rad > -PI && angle_rad <= PI {
         return angle_rad;
     }
+    wrap_angle_slow(angle_rad)
+}
+
+#[cold]
+fn wrap_angle_slow(angle_rad: f64) -> f64 {
     if angle_rad > -3.0 * PI && angle_rad <= 3.0 * PI {
         let a = if angle_rad > PI {
             angle_rad - 2.0 * PI

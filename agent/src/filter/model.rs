@@ -18,6 +18,7 @@ pub struct Pose {
 
 /// Range + AoA of a transmitter state seen from `pose`: `d = ‖p_tx − p_u‖ + b`,
 /// `θ = atan2(Δy, Δx) − heading` (wrapped).
+#[inline(always)]
 pub fn h_toa_aoa(pose: &Pose, x: &Vector3<f64>) -> Vector2<f64> {
     let (dx, dy) = (x.x - pose.x, x.y - pose.y);
     // sqrt of the sum of squares: libm's hypot guards overflow we cannot have here and is
@@ -28,15 +29,18 @@ pub fn h_toa_aoa(pose: &Pose, x: &Vector3<f64>) -> Vector2<f64> {
     )
 }
 
+#[inline(always)]
 pub fn h_toa(pose: &Pose, x: &Vector3<f64>) -> Vector1<f64> {
     let (dx, dy) = (x.x - pose.x, x.y - pose.y);
     Vector1::new((dx * dx + dy * dy).sqrt() + x.z)
 }
 
+#[inline(always)]
 pub fn residual_toa_aoa(a: &Vector2<f64>, b: &Vector2<f64>) -> Vector2<f64> {
     Vector2::new(a.x - b.x, wrap_angle(a.y - b.y))
 }
 
+#[inline(always)]
 pub fn residual_toa(a: &Vector1<f64>, b: &Vector1<f64>) -> Vector1<f64> {
     a - b
 }

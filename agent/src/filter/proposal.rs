@@ -191,7 +191,7 @@ fn best_component(
             continue;
         };
         let s_full = l.s + l.j * q * l.j.transpose();
-        let Some(chol) = s_full.cholesky() else {
+        let Some(chol) = srckf::SmallCholesky::new(&s_full) else {
             continue;
         };
         let l_diag = chol.l();

@@ -29,8 +29,18 @@ impl SqrtGaussian {
         cov.cholesky().map(|c| SqrtGaussian { mean, sqrt: c.l() })
     }
 
+    /// `P = S·Sᵀ` from the lower-triangular factor: the products with its zero upper part
+    /// are left out, the rest summed in the order of the full product (same bits).
+    #[inline]
     pub fn cov(&self) -> Matrix3<f64> {
-        self.sqrt * self.sqrt.transpose()
+        let s = &self.sqrt;
+        let p00 = s[(0, 0)] * s[(0, 0)];
+        let p10 = s[(1, 0)] * s[(0, 0)];
+        let p20 = s[(2, 0)] * s[(0, 0)];
+        let p11 = s[(1, 0)] * s[(1, 0)] + s[(1, 1)] * s[(1, 1)];
+        let p21 = s[(2, 0)] * s[(1, 0)] + s[(2, 1)] * s[(1, 1)];
+        let p22 = s[(2, 0)] * s[(2, 0)] + s[(2, 1)] * s[(2, 1)] + s[(2, 2)] * s[(2, 2)];
+        Matrix3::new(p00, p10, p20, p10, p11, p21, p20, p21, p22)
     }
 
     /// The 6 cubature points.
@@ -127,6 +137,76 @@ pub fn predict<const M: usize>(
     }
 }
 
+/// Cholesky factor of a small symmetric positive definite matrix (the 1×1 and 2×2
+/// innovation covariances of the hot loop), with the operations of nalgebra's `Cholesky` in
+/// its order, so that every result is the same to the bit, without its general-size loops
+/// over dynamic views (they cost more than the arithmetic at these sizes).
+#[derive(Debug, Clone, Copy)]
+pub struct SmallCholesky<const M: usize> {
+    l: SMatrix<f64, M, M>,
+}
+
+impl<const M: usize> SmallCholesky<M> {
+    /// None when `p` is not positive definite (a zero, negative or NaN pivot).
+    #[inline]
+    pub fn new(p: &SMatrix<f64, M, M>) -> Option<Self> {
+        let mut m = *p;
+        for j in 0..M {
+            for k in 0..j {
+                let factor = -m[(j, k)];
+                for i in j..M {
+                    m[(i, j)] += factor * m[(i, k)];
+                }
+            }
+            let diag = m[(j, j)];
+            // nalgebra refuses a zero pivot and takes `try_sqrt`, which refuses < 0 and NaN
+            if diag <= 0.0 || diag.is_nan() {
+                return None;
+            }
+            let denom = diag.sqrt();
+            m[(j, j)] = denom;
+            for i in (j + 1)..M {
+                m[(i, j)] /= denom;
+            }
+        }
+        for j in 1..M {
+            for i in 0..j {
+                m[(i, j)] = 0.0;
+            }
+        }
+        Some(SmallCholesky { l: m })
+    }
+
+    /// The lower-triangular factor L (P = L·Lᵀ).
+    #[inline]
+    pub fn l(&self) -> SMatrix<f64, M, M> {
+        self.l
+    }
+
+    /// `P⁻¹·b`: forward substitution with L, then back substitution with Lᵀ.
+    #[inline]
+    pub fn solve(&self, b: &SVector<f64, M>) -> SVector<f64, M> {
+        let l = &self.l;
+        let mut x = *b;
+        for i in 0..M {
+            let coeff = x[i] / l[(i, i)];
+            x[i] = coeff;
+            for r in (i + 1)..M {
+                x[r] -= coeff * l[(r, i)];
+            }
+        }
+        for i in (0..M).rev() {
+            // nalgebra's dot over the rows below starts from +0
+            let mut dot = 0.0;
+            for r in (i + 1)..M {
+                dot += l[(r, i)] * x[r];
+            }
+            x[i] = (x[i] - dot) / l[(i, i)];
+        }
+        x
+    }
+}
+
 /// Log of `N(res; 0, P)`; None when P is not positive definite.
 pub fn log_normal<const M: usize>(res: &SVector<f64, M>, p: &SMatrix<f64, M, M>) -> Option<f64> {
     log_normal_and_mahalanobis(res, p).map(|x| x.0)
@@ -137,7 +217,7 @@ pub fn log_normal_and_mahalanobis<const M: usize>(
     res: &SVector<f64, M>,
     p: &SMatrix<f64, M, M>,
 ) -> Option<(f64, f64)> {
-    let chol = p.cholesky()?;
+    let chol = SmallCholesky::new(p)?;
     let l = chol.l();
     let log_det: f64 = 2.0 * (0..M).map(|i| l[(i, i)].ln()).sum::<f64>();
     let d2 = res.dot(&chol.solve(res));
@@ -210,11 +290,17 @@ pub fn update_predicted<const M: usize>(
     p: &Predicted<M>,
     residual: impl Fn(&SVector<f64, M>, &SVector<f64, M>) -> SVector<f64, M>,
 ) -> Option<Updated> {
-    let chol = p.pzz.cholesky()?;
+    let chol = SmallCholesky::new(&p.pzz)?;
     let innovation = residual(z, &p.z_hat);
     let pxz = p.x_dev * p.z_dev.transpose();
-    // K = Pxz·Pzz⁻¹  ⇔  Kᵀ = Pzz⁻¹·Pxzᵀ
-    let k: SMatrix<f64, 3, M> = chol.solve(&pxz.transpose()).transpose();
+    // K = Pxz·Pzz⁻¹  ⇔  Kᵀ = Pzz⁻¹·Pxzᵀ, row by row
+    let mut k = SMatrix::<f64, 3, M>::zeros();
+    for row in 0..3 {
+        let kt = chol.solve(&pxz.row(row).transpose());
+        for c in 0..M {
+            k[(row, c)] = kt[c];
+        }
+    }
     let mean = g.mean + k * innovation;
     // P⁺ = P − K·P_zz·Kᵀ = S·Sᵀ − U·Uᵀ with U = K·L_zz: M rank-1 downdates of the factor S
     // (O(n²) each). Where a downdate would cancel badly (a direction the measurement
@@ -331,6 +417,53 @@ mod tests {
         assert_relative_eq!(l * l.transpose(), a * a.transpose(), epsilon = 1e-10);
         assert!(l[(0, 1)] == 0.0 && l[(0, 2)] == 0.0 && l[(1, 2)] == 0.0);
         assert!((0..3).all(|i| l[(i, i)] >= 0.0));
+    }
+
+    #[test]
+    fn the_small_factorizations_give_nalgebras_bits() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let mut u = || rng.random::<f64>() * 4.0 - 2.0;
+        for _ in 0..2000 {
+            let a = nalgebra::Matrix2::new(u(), u(), u(), u());
+            let p = a * a.transpose() + nalgebra::Matrix2::identity() * 1e-3;
+            let b = Vector2::new(u(), u());
+            let ours = SmallCholesky::new(&p).unwrap();
+            let theirs = p.cholesky().unwrap();
+            assert_eq!(ours.l(), theirs.l());
+            assert_eq!(ours.solve(&b), theirs.solve(&b));
+            let p1 = nalgebra::Matrix1::new(u().abs() + 1e-3);
+            let b1 = Vector1::new(u());
+            assert_eq!(
+                SmallCholesky::new(&p1).unwrap().solve(&b1),
+                p1.cholesky().unwrap().solve(&b1)
+            );
+            let s = Matrix3::new(
+                u().abs(),
+                0.0,
+                0.0,
+                u(),
+                u().abs(),
+                0.0,
+                u(),
+                u(),
+                u().abs(),
+            );
+            let g = SqrtGaussian {
+                mean: Vector3::zeros(),
+                sqrt: s,
+            };
+            assert_eq!(g.cov(), s * s.transpose());
+        }
+        // refused exactly where nalgebra refuses
+        for p in [
+            Matrix2::new(0.0, 0.0, 0.0, 1.0),
+            Matrix2::new(1.0, 2.0, 2.0, 1.0),
+            Matrix2::new(f64::NAN, 0.0, 0.0, 1.0),
+            Matrix2::new(-1.0, 0.0, 0.0, 1.0),
+        ] {
+            assert!(SmallCholesky::new(&p).is_none() && p.cholesky().is_none());
+        }
     }
 
     #[test]
