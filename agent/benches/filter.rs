@@ -1,11 +1,11 @@
-//! Filter benchmarks: one square-root cubature component update, and whole filter steps on
+//! Filter benchmarks: one square-root cubature component update (as the filter makes it), and whole filter steps on
 //! the urban reference track (the first 200 snapshots = 10 s of data at 20 Hz) with 1000
 //! and 4000 particles. Run: `cargo bench -p echomap-agent --bench filter`.
 //! Real-time factor = 10 s / (median time of the 200-snapshot run).
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
-use echomap_agent::filter::model::{Pose, h_toa_aoa, residual_toa_aoa};
-use echomap_agent::filter::srckf::{SqrtGaussian, update};
+use echomap_agent::filter::model::{Pose, residual_toa_aoa, toa_aoa_images};
+use echomap_agent::filter::srckf::{SqrtGaussian, predict_images, update_predicted};
 use echomap_agent::filter::{Filter, FilterConfig};
 use echomap_agent::sim::builtin;
 use echomap_agent::sim::simulate::{SimOptions, simulate};
@@ -28,14 +28,15 @@ fn component_update(c: &mut Criterion) {
     let r = Matrix2::from_diagonal(&Vector2::new(0.3, 0.07));
     c.bench_function("srckf/component_update", |b| {
         b.iter(|| {
-            update(
-                black_box(&g),
-                black_box(&z),
-                &r,
-                |x| h_toa_aoa(&pose, x),
+            // as the filter updates a component: the cubature images, then the update
+            let g = black_box(&g);
+            let p = predict_images(
+                g,
+                |pts| toa_aoa_images(&pose, pts),
                 residual_toa_aoa,
-            )
-            .unwrap()
+                &(r * r.transpose()),
+            );
+            update_predicted(g, black_box(&z), &r, &p, residual_toa_aoa).unwrap()
         })
     });
 }

@@ -29,6 +29,42 @@ pub fn h_toa_aoa(pose: &Pose, x: &Vector3<f64>) -> Vector2<f64> {
     )
 }
 
+/// [`h_toa_aoa`] at the six cubature points of `srckf::SqrtGaussian::cubature_points`.
+/// The points `m ± √3·S·e₃` move b alone (the factor S is lower triangular, its third column
+/// is `(0, 0, s₃₃)`), so they share one distance in the plane and one angle: five square
+/// roots and arctangents instead of six, every image the same to the bit.
+#[inline(always)]
+pub fn toa_aoa_images(pose: &Pose, pts: &[Vector3<f64>; 6]) -> [Vector2<f64>; 6] {
+    debug_assert!(pts[2].x == pts[5].x && pts[2].y == pts[5].y);
+    let (dx, dy) = (pts[2].x - pose.x, pts[2].y - pose.y);
+    let planar = (dx * dx + dy * dy).sqrt();
+    let angle = wrap_angle(fast_atan2(dy, dx) - pose.heading);
+    [
+        h_toa_aoa(pose, &pts[0]),
+        h_toa_aoa(pose, &pts[1]),
+        Vector2::new(planar + pts[2].z, angle),
+        h_toa_aoa(pose, &pts[3]),
+        h_toa_aoa(pose, &pts[4]),
+        Vector2::new(planar + pts[5].z, angle),
+    ]
+}
+
+/// [`h_toa`] at the six cubature points, sharing the planar distance of the two points that
+/// differ from the mean in b alone (see [`toa_aoa_images`]).
+#[inline(always)]
+pub fn toa_images(pose: &Pose, pts: &[Vector3<f64>; 6]) -> [Vector1<f64>; 6] {
+    let (dx, dy) = (pts[2].x - pose.x, pts[2].y - pose.y);
+    let planar = (dx * dx + dy * dy).sqrt();
+    [
+        h_toa(pose, &pts[0]),
+        h_toa(pose, &pts[1]),
+        Vector1::new(planar + pts[2].z),
+        h_toa(pose, &pts[3]),
+        h_toa(pose, &pts[4]),
+        Vector1::new(planar + pts[5].z),
+    ]
+}
+
 #[inline(always)]
 pub fn h_toa(pose: &Pose, x: &Vector3<f64>) -> Vector1<f64> {
     let (dx, dy) = (x.x - pose.x, x.y - pose.y);
@@ -141,6 +177,31 @@ pub fn initialize(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_shared_images_are_the_measurement_function_at_every_point() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let mut u = || rng.random::<f64>() * 40.0 - 20.0;
+        for _ in 0..1000 {
+            let pose = Pose {
+                x: u(),
+                y: u(),
+                heading: u() / 6.0,
+                speed: 1.0,
+            };
+            let cov = Matrix3::new(u(), u(), u(), u(), u(), u(), u(), u(), u());
+            let cov = cov * cov.transpose() * 0.01 + Matrix3::identity() * 1e-4;
+            let g = SqrtGaussian::from_cov(Vector3::new(u(), u(), u().abs()), &cov).unwrap();
+            let pts = g.cubature_points();
+            let shared = toa_aoa_images(&pose, &pts);
+            let shared_toa = toa_images(&pose, &pts);
+            for j in 0..6 {
+                assert_eq!(shared[j], h_toa_aoa(&pose, &pts[j]));
+                assert_eq!(shared_toa[j], h_toa(&pose, &pts[j]));
+            }
+        }
+    }
 
     #[test]
     fn initial_components_reproduce_the_measurement() {

@@ -115,8 +115,20 @@ pub fn predict<const M: usize>(
     residual: impl Fn(&SVector<f64, M>, &SVector<f64, M>) -> SVector<f64, M>,
     r: &SMatrix<f64, M, M>,
 ) -> Predicted<M> {
+    predict_images(g, |pts| pts.map(|p| h(&p)), residual, r)
+}
+
+/// [`predict`] with the images of all cubature points from one call of `images`, for a
+/// measurement function that can share work between the points (`model::toa_aoa_images`).
+#[inline]
+pub fn predict_images<const M: usize>(
+    g: &SqrtGaussian,
+    images: impl Fn(&[Vector3<f64>; POINTS]) -> [SVector<f64, M>; POINTS],
+    residual: impl Fn(&SVector<f64, M>, &SVector<f64, M>) -> SVector<f64, M>,
+    r: &SMatrix<f64, M, M>,
+) -> Predicted<M> {
     let pts = g.cubature_points();
-    let zs: [SVector<f64, M>; POINTS] = std::array::from_fn(|j| h(&pts[j]));
+    let zs = images(&pts);
     // Mean of angles: average the residuals against the first point, then add back.
     let z0 = zs[0];
     let mean_res = zs
@@ -202,6 +214,40 @@ impl<const M: usize> SmallCholesky<M> {
                 dot += l[(r, i)] * x[r];
             }
             x[i] = (x[i] - dot) / l[(i, i)];
+        }
+        x
+    }
+
+    /// [`Self::solve`] for four right-hand sides at once, `b[i][c]` row i of side c: the
+    /// same operations on each side (the same bits), laid out so that the divisions of the
+    /// four sides go to the vector unit together.
+    #[inline]
+    pub fn solve4(&self, b: &[[f64; 4]; M]) -> [[f64; 4]; M] {
+        let l = &self.l;
+        let mut x = *b;
+        for i in 0..M {
+            let d = l[(i, i)];
+            let coeff: [f64; 4] = std::array::from_fn(|c| x[i][c] / d);
+            x[i] = coeff;
+            for r in (i + 1)..M {
+                let lr = l[(r, i)];
+                for c in 0..4 {
+                    x[r][c] -= coeff[c] * lr;
+                }
+            }
+        }
+        for i in (0..M).rev() {
+            let mut dot = [0.0; 4];
+            for r in (i + 1)..M {
+                let lr = l[(r, i)];
+                for c in 0..4 {
+                    dot[c] += lr * x[r][c];
+                }
+            }
+            let d = l[(i, i)];
+            for c in 0..4 {
+                x[i][c] = (x[i][c] - dot[c]) / d;
+            }
         }
         x
     }
@@ -293,14 +339,13 @@ pub fn update_predicted<const M: usize>(
     let chol = SmallCholesky::new(&p.pzz)?;
     let innovation = residual(z, &p.z_hat);
     let pxz = p.x_dev * p.z_dev.transpose();
-    // K = Pxz·Pzz⁻¹  ⇔  Kᵀ = Pzz⁻¹·Pxzᵀ, row by row
-    let mut k = SMatrix::<f64, 3, M>::zeros();
-    for row in 0..3 {
-        let kt = chol.solve(&pxz.row(row).transpose());
-        for c in 0..M {
-            k[(row, c)] = kt[c];
-        }
-    }
+    // K = Pxz·Pzz⁻¹  ⇔  Kᵀ = Pzz⁻¹·Pxzᵀ, one row of K per side, and P_zz⁻¹·ν for the
+    // likelihood as the fourth
+    let sides: [[f64; 4]; M] =
+        std::array::from_fn(|i| [pxz[(0, i)], pxz[(1, i)], pxz[(2, i)], innovation[i]]);
+    let solved = chol.solve4(&sides);
+    let k = SMatrix::<f64, 3, M>::from_fn(|row, c| solved[c][row]);
+    let pzz_inv_nu = SVector::<f64, M>::from_fn(|i, _| solved[i][3]);
     let mean = g.mean + k * innovation;
     // P⁺ = P − K·P_zz·Kᵀ = S·Sᵀ − U·Uᵀ with U = K·L_zz: M rank-1 downdates of the factor S
     // (O(n²) each). Where a downdate would cancel badly (a direction the measurement
@@ -337,7 +382,7 @@ pub fn update_predicted<const M: usize>(
     // ln N(ν; 0, P_zz) from the factor already computed
     let l = chol.l();
     let log_det: f64 = 2.0 * (0..M).map(|i| l[(i, i)]).product::<f64>().ln();
-    let d2 = innovation.dot(&chol.solve(&innovation));
+    let d2 = innovation.dot(&pzz_inv_nu);
     let log_likelihood = -0.5 * (d2 + log_det + M as f64 * (2.0 * std::f64::consts::PI).ln());
     Some(Updated {
         posterior: SqrtGaussian { mean, sqrt },

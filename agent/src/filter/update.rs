@@ -4,7 +4,7 @@
 //! into an own one.
 
 use super::config::FilterConfig;
-use super::model::{Comp, Pose, h_toa, h_toa_aoa, residual_toa, residual_toa_aoa};
+use super::model::{Comp, Pose, residual_toa, residual_toa_aoa, toa_aoa_images, toa_images};
 use super::srckf::{self, SqrtGaussian};
 use echomap_shared::log::Measurement;
 use echomap_shared::mixture::{self, Component};
@@ -66,18 +66,18 @@ impl Meas {
     pub(super) fn update(&self, pose: &Pose, g: &SqrtGaussian) -> Option<srckf::Updated> {
         match self {
             Meas::ToaAoa { z, r_sqrt, dof } => {
-                let p = srckf::predict(
+                let p = srckf::predict_images(
                     g,
-                    |x| h_toa_aoa(pose, x),
+                    |pts| toa_aoa_images(pose, pts),
                     residual_toa_aoa,
                     &(r_sqrt * r_sqrt.transpose()),
                 );
                 robust_update(g, z, r_sqrt, *dof, &p, residual_toa_aoa)
             }
             Meas::Toa { z, r_sqrt, dof } => {
-                let p = srckf::predict(
+                let p = srckf::predict_images(
                     g,
-                    |x| h_toa(pose, x),
+                    |pts| toa_images(pose, pts),
                     residual_toa,
                     &(r_sqrt * r_sqrt.transpose()),
                 );
@@ -97,18 +97,18 @@ impl Meas {
     fn gaussian_log_likelihood(&self, pose: &Pose, g: &SqrtGaussian) -> Option<(f64, f64)> {
         match self {
             Meas::ToaAoa { z, r_sqrt, .. } => {
-                let p = srckf::predict(
+                let p = srckf::predict_images(
                     g,
-                    |x| h_toa_aoa(pose, x),
+                    |pts| toa_aoa_images(pose, pts),
                     residual_toa_aoa,
                     &(r_sqrt * r_sqrt.transpose()),
                 );
                 srckf::log_normal_and_mahalanobis(&residual_toa_aoa(z, &p.z_hat), &p.pzz)
             }
             Meas::Toa { z, r_sqrt, .. } => {
-                let p = srckf::predict(
+                let p = srckf::predict_images(
                     g,
-                    |x| h_toa(pose, x),
+                    |pts| toa_images(pose, pts),
                     residual_toa,
                     &(r_sqrt * r_sqrt.transpose()),
                 );
