@@ -198,54 +198,39 @@ impl<const M: usize> SmallCholesky<M> {
     /// `P⁻¹·b`: forward substitution with L, then back substitution with Lᵀ.
     #[inline]
     pub fn solve(&self, b: &SVector<f64, M>) -> SVector<f64, M> {
-        let l = &self.l;
-        let mut x = *b;
-        for i in 0..M {
-            let coeff = x[i] / l[(i, i)];
-            x[i] = coeff;
-            for r in (i + 1)..M {
-                x[r] -= coeff * l[(r, i)];
-            }
-        }
-        for i in (0..M).rev() {
-            // nalgebra's dot over the rows below starts from +0
-            let mut dot = 0.0;
-            for r in (i + 1)..M {
-                dot += l[(r, i)] * x[r];
-            }
-            x[i] = (x[i] - dot) / l[(i, i)];
-        }
-        x
+        let x = self.solve_sides::<1>(&std::array::from_fn(|i| [b[i]]));
+        SVector::<f64, M>::from_fn(|i, _| x[i][0])
     }
 
-    /// [`Self::solve`] for four right-hand sides at once, `b[i][c]` row i of side c: the
-    /// same operations on each side (the same bits), laid out so that the divisions of the
-    /// four sides go to the vector unit together.
+    /// [`Self::solve`] for N right-hand sides at once, `b[i][c]` row i of side c: the same
+    /// operations on each side (the same bits), laid out so that the divisions of the sides
+    /// can go to the vector unit together.
     #[inline]
-    pub fn solve4(&self, b: &[[f64; 4]; M]) -> [[f64; 4]; M] {
+    pub fn solve_sides<const N: usize>(&self, b: &[[f64; N]; M]) -> [[f64; N]; M] {
         let l = &self.l;
         let mut x = *b;
         for i in 0..M {
             let d = l[(i, i)];
-            let coeff: [f64; 4] = std::array::from_fn(|c| x[i][c] / d);
+            let coeff: [f64; N] = std::array::from_fn(|c| x[i][c] / d);
             x[i] = coeff;
             for r in (i + 1)..M {
                 let lr = l[(r, i)];
-                for c in 0..4 {
+                for c in 0..N {
                     x[r][c] -= coeff[c] * lr;
                 }
             }
         }
         for i in (0..M).rev() {
-            let mut dot = [0.0; 4];
+            // nalgebra's dot over the rows below starts from +0
+            let mut dot = [0.0; N];
             for r in (i + 1)..M {
                 let lr = l[(r, i)];
-                for c in 0..4 {
+                for c in 0..N {
                     dot[c] += lr * x[r][c];
                 }
             }
             let d = l[(i, i)];
-            for c in 0..4 {
+            for c in 0..N {
                 x[i][c] = (x[i][c] - dot[c]) / d;
             }
         }
@@ -343,7 +328,7 @@ pub fn update_predicted<const M: usize>(
     // likelihood as the fourth
     let sides: [[f64; 4]; M] =
         std::array::from_fn(|i| [pxz[(0, i)], pxz[(1, i)], pxz[(2, i)], innovation[i]]);
-    let solved = chol.solve4(&sides);
+    let solved = chol.solve_sides(&sides);
     let k = SMatrix::<f64, 3, M>::from_fn(|row, c| solved[c][row]);
     let pzz_inv_nu = SVector::<f64, M>::from_fn(|i, _| solved[i][3]);
     let mean = g.mean + k * innovation;
@@ -477,6 +462,16 @@ mod tests {
             let theirs = p.cholesky().unwrap();
             assert_eq!(ours.l(), theirs.l());
             assert_eq!(ours.solve(&b), theirs.solve(&b));
+            let sides = nalgebra::Matrix2x3::new(u(), u(), u(), u(), u(), u());
+            let at_once = ours.solve_sides(&std::array::from_fn(|i| {
+                [sides[(i, 0)], sides[(i, 1)], sides[(i, 2)]]
+            }));
+            let one_by_one = theirs.solve(&sides);
+            for i in 0..2 {
+                for c in 0..3 {
+                    assert_eq!(at_once[i][c], one_by_one[(i, c)]);
+                }
+            }
             let p1 = nalgebra::Matrix1::new(u().abs() + 1e-3);
             let b1 = Vector1::new(u());
             assert_eq!(
