@@ -98,6 +98,12 @@ pub struct MeasurementConfig {
     /// degrees of freedom of a Student-t error law whose scale is the noise law above
     /// (heavy-tailed errors); 0 = Gaussian
     pub noise_dof: f64,
+    /// probability that a detection of a known transmitter comes from another member of
+    /// its unresolved cluster: the same direction, a clock offset changed by a step of
+    /// `jump_std_m` (0: off)
+    pub jump_probability: f64,
+    /// standard deviation of such a step of the clock offset (m)
+    pub jump_std_m: f64,
 }
 
 /// Data association of new tracks (Gentner et al. 2016 §5; Ulmschneider et al. 2021 eq. 19).
@@ -185,6 +191,8 @@ impl Default for RunConfig {
                 outlier_probability: DEFAULT_OUTLIER_PROBABILITY,
                 outlier_density: f.outlier_density,
                 noise_dof: 0.0,
+                jump_probability: f.jump_probability,
+                jump_std_m: f.jump_std_m,
             },
             association: AssociationConfig {
                 method: f.association,
@@ -340,6 +348,7 @@ impl RunConfig {
             ("measurement.aoa_floor_rad", x.aoa_floor_rad),
             ("measurement.aoa_at_0db_rad", x.aoa_at_0db_rad),
             ("measurement.outlier_density", x.outlier_density),
+            ("measurement.jump_std_m", x.jump_std_m),
             ("association.visibility_weight", a.visibility_weight),
             ("prior.position_floor_m", p.position_floor_m),
             ("prior.transform_draws", p.transform_draws),
@@ -368,6 +377,12 @@ impl RunConfig {
             return bad(
                 "measurement.outlier_probability",
                 format!("must be in [0, 1), got {}", x.outlier_probability),
+            );
+        }
+        if !(0.0..1.0).contains(&x.jump_probability) {
+            return bad(
+                "measurement.jump_probability",
+                format!("must be in [0, 1), got {}", x.jump_probability),
             );
         }
         if !(x.noise_dof.is_finite() && x.noise_dof >= 0.0) {
@@ -446,6 +461,8 @@ impl RunConfig {
             outlier_probability: x.outlier_probability,
             outlier_density: x.outlier_density,
             noise_dof: x.noise_dof,
+            jump_probability: x.jump_probability,
+            jump_std_m: x.jump_std_m,
             noise: NoiseModel {
                 distance_floor_m: x.distance_floor_m,
                 distance_at_0db_m: x.distance_at_0db_m,
@@ -575,6 +592,7 @@ pub fn measured_profile(log: &MeasurementLog) -> Option<SensorProfile> {
     }
     let m = calibration::measure_noise(log)?;
     let has_tail = stated.is_some_and(|s| s.noise_dof.is_some());
+    let has_jumps = stated.is_some_and(|s| s.jump_probability.is_some());
     Some(SensorProfile {
         name: Some(format!(
             "measured from {} second differences along the log's tracks",
@@ -584,6 +602,9 @@ pub fn measured_profile(log: &MeasurementLog) -> Option<SensorProfile> {
         aoa_rad: if has_aoa { None } else { m.aoa_rad },
         // the laws are measured, so is how heavy their tails are
         noise_dof: (!has_tail).then_some(m.tail_dof),
+        // and how often a track steps to another member of its cluster
+        jump_probability: (!has_jumps).then(|| m.cluster_jumps.map_or(0.0, |j| j.probability)),
+        jump_std_m: m.cluster_jumps.filter(|_| !has_jumps).map(|j| j.std_m),
         ..Default::default()
     })
 }
@@ -628,6 +649,12 @@ pub fn sensor_layer(p: &SensorProfile) -> Value {
     }
     if let Some(v) = p.new_transmitter_density {
         set("association.p0", json!(v));
+    }
+    if let Some(v) = p.jump_probability {
+        set("measurement.jump_probability", json!(v));
+    }
+    if let Some(v) = p.jump_std_m {
+        set("measurement.jump_std_m", json!(v));
     }
     if let Some(v) = p.outlier_probability {
         set("measurement.outlier_probability", json!(v));
@@ -908,6 +935,10 @@ mod tests {
             assert_eq!(r.config.measurement.distance_floor_m, d.floor);
             assert_eq!(r.config.measurement.noise_dof, 0.0);
             assert_eq!(r.sources["measurement.aoa_floor_rad"], Source::Measured);
+            // each simulated track follows one virtual transmitter: (almost) no jumps
+            let eta = r.config.measurement.jump_probability;
+            assert!(eta < 1e-3, "{name}: η = {eta}");
+            assert_eq!(r.sources["measurement.jump_probability"], Source::Measured);
             // a law the profile states beats the measured one; the other stays measured
             let stated = SensorProfile {
                 distance_m: Some(NoiseLaw {

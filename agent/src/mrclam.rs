@@ -536,6 +536,9 @@ pub fn sensor_profile() -> SensorProfile {
         outlier_probability: Some(0.0),
         // and as Gaussian laws with that gate
         noise_dof: Some(0.0),
+        // one barcode per landmark: no clusters
+        jump_probability: Some(0.0),
+        jump_std_m: None,
     }
 }
 

@@ -100,6 +100,14 @@ pub struct SensorProfile {
     /// Gaussian
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise_dof: Option<f64>,
+    /// probability that a detection of a known transmitter comes from another member of
+    /// its unresolved cluster (paths closer than the resolution, which the tracker keeps
+    /// under one id): the same direction, the clock offset stepped
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub jump_probability: Option<f64>,
+    /// root mean square of such a step of the clock offset (m)
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub jump_std_m: Option<f64>,
 }
 
 impl SensorProfile {
@@ -146,12 +154,16 @@ impl SensorProfile {
         ));
         checks.push(("sensor.gate_chi2", self.gate_chi2, positive));
         checks.push(("sensor.noise_dof", self.noise_dof, non_negative));
-        if let Some(v) = self.outlier_probability
-            && !(0.0..1.0).contains(&v)
-        {
-            return Err(format!(
-                "sensor.outlier_probability must be in [0, 1), got {v}"
-            ));
+        checks.push(("sensor.jump_std_m", self.jump_std_m, positive));
+        for (field, v) in [
+            ("sensor.outlier_probability", self.outlier_probability),
+            ("sensor.jump_probability", self.jump_probability),
+        ] {
+            if let Some(v) = v
+                && !(0.0..1.0).contains(&v)
+            {
+                return Err(format!("{field} must be in [0, 1), got {v}"));
+            }
         }
         for (field, v, strict) in checks {
             let Some(v) = v else { continue };

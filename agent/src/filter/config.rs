@@ -175,6 +175,12 @@ pub struct FilterConfig {
     pub outlier_probability: f64,
     /// density λ of an outlier over the measurement space (1/(m·rad); ToA-only: 1/m)
     pub outlier_density: f64,
+    /// probability η that a detection of a known transmitter comes from another member of
+    /// its unresolved cluster (same direction, another clock offset), decided once per
+    /// detection for the whole population like a gross error (`Filter::weigh_detections`)
+    pub jump_probability: f64,
+    /// standard deviation of the clock offset's step when it does (m)
+    pub jump_std_m: f64,
     /// degrees of freedom ν of a Student-t error law whose scale is the noise law (heavy
     /// tails: errors of many σ are rare but not impossible); 0 = Gaussian
     pub noise_dof: f64,
@@ -259,6 +265,8 @@ impl Default for FilterConfig {
             prior_association_window: 30,
             outlier_probability: 0.0,
             outlier_density: 1.0 / (10.0 * std::f64::consts::TAU),
+            jump_probability: 0.0,
+            jump_std_m: 1.5,
             noise_dof: 0.0,
             association_max_spread_m: 3.0,
             prior_min_existence: 0.5,

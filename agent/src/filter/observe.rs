@@ -2,9 +2,13 @@
 //! user particle): move, update every transmitter bound to a detected track, start or
 //! associate the new tracks, decide the associations that are due.
 
+use super::config::FilterConfig;
 use super::model::Pose;
 use super::particle::Particle;
+use super::particle::TxState;
 use super::rbpf::{Detection, StepInput};
+use super::srckf::SqrtGaussian;
+use super::update::Meas;
 use super::update::update_mixture;
 use rand_chacha::ChaCha8Rng;
 use std::collections::BTreeSet;
@@ -80,16 +84,61 @@ impl Particle {
         detections
     }
 
-    /// Applies the population's gross-error decision to this particle's waiting detections
-    /// (`observe`): the transmitter of an outlier is restored to its state before the
-    /// detection, every other detection weighs.
-    pub(super) fn settle(&mut self, detections: Vec<Detection>, outliers: &BTreeSet<u64>) {
+    /// The detection of `track` as another member of its transmitter's unresolved cluster:
+    /// the transmitter as it was before the detection (`saved`), every component's clock
+    /// offset widened by a step of `cfg.jump_std_m`, then updated by the detection. Returns
+    /// the detection's log likelihood under that hypothesis and the transmitter after it.
+    pub(super) fn jump_update(
+        &self,
+        saved: &Arc<TxState>,
+        m: &Meas,
+        cfg: &FilterConfig,
+    ) -> (f64, Arc<TxState>) {
+        let mut tx = TxState::clone(saved);
+        let step = cfg.jump_std_m * cfg.jump_std_m;
+        tx.comps.retain_mut(|c| {
+            let mut cov = c.g.cov();
+            cov[(2, 2)] += step;
+            match SqrtGaussian::from_cov(c.g.mean, &cov) {
+                Some(g) => {
+                    c.g = g;
+                    true
+                }
+                None => false,
+            }
+        });
+        let ll = update_mixture(&mut tx.comps, m, &self.pose, cfg, false);
+        (ll, Arc::new(tx))
+    }
+
+    /// Applies the population's decision to this particle's waiting detections (`observe`):
+    /// the transmitter of an outlier is restored to its state before the detection, that of
+    /// a cluster jump replaced by its state under the jump (`jumped`: track, log likelihood,
+    /// transmitter), and every detection but an outlier weighs.
+    pub(super) fn settle(
+        &mut self,
+        detections: Vec<Detection>,
+        outliers: &BTreeSet<u64>,
+        mut jumped: Vec<Detection>,
+    ) {
         for (track, ll, saved) in detections {
-            if outliers.contains(&track) {
+            let jump = jumped
+                .iter()
+                .position(|j| j.0 == track)
+                .map(|k| jumped.swap_remove(k));
+            if outliers.contains(&track) || jump.is_some() {
                 // the slot as bound now: an association decided later in the step may have
                 // removed a slot before it
                 if let Some(&(_, slot)) = self.bound.iter().find(|(t, _)| *t == track) {
-                    self.txs[slot as usize] = saved;
+                    match jump {
+                        Some((_, ll, mut tx)) => {
+                            Arc::make_mut(&mut tx).reliability_m =
+                                self.txs[slot as usize].reliability_m;
+                            self.txs[slot as usize] = tx;
+                            self.log_w += ll;
+                        }
+                        None => self.txs[slot as usize] = saved,
+                    }
                 }
             } else {
                 self.log_w += ll;

@@ -65,6 +65,8 @@ pub struct Filter {
     pub(super) prior: Option<Arc<Prior>>,
     /// detections of bound tracks decided to be gross errors so far
     pub(super) outliers: usize,
+    /// detections of bound tracks decided to be jumps within an unresolved cluster so far
+    pub(super) jumps: usize,
     /// the true track run through the same model, when the true poses are given
     pub(super) truth: Option<TruthTrack>,
     /// map segments opened so far (`super::gauge`)
@@ -168,6 +170,7 @@ impl Filter {
             log_evidence: 0.0,
             prior: None,
             outliers: 0,
+            jumps: 0,
             truth: None,
             segments: 0,
             segment: 0,
@@ -218,6 +221,11 @@ impl Filter {
     /// Detections of bound tracks decided to be gross errors so far.
     pub fn outlier_detections(&self) -> usize {
         self.outliers
+    }
+
+    /// Detections of bound tracks decided to be jumps within an unresolved cluster so far.
+    pub fn jump_detections(&self) -> usize {
+        self.jumps
     }
 
     /// ln p(z₁..z_t) so far (see `StepStats::log_evidence`).
@@ -402,10 +410,10 @@ impl Filter {
             let mut rng = truth_rng;
             tt.observe(&input, &mut rng)
         });
-        let outliers = if robust {
-            self.weigh_detections(detections, &w_before)
+        let (outliers, jumps) = if robust {
+            self.weigh_detections(detections, &w_before, &meas)
         } else {
-            BTreeSet::new()
+            (BTreeSet::new(), BTreeSet::new())
         };
         // Normalize, estimate, resample.
         let after = log_sum_exp(self.particles.iter().map(|p| p.log_w));
@@ -414,7 +422,7 @@ impl Filter {
         }
         let truth_ll_ratio = match (self.truth.as_mut(), truth_detections) {
             (Some(tt), Some(ds)) if before.is_finite() => {
-                Some(tt.settle(ds, &outliers, after - before))
+                Some(tt.settle(ds, &outliers, &jumps, &meas, &self.cfg, after - before))
             }
             _ => None,
         };
@@ -481,32 +489,58 @@ impl Filter {
     /// track); it then weights no particle and every particle's transmitter is restored to
     /// its state before the update. Deciding per particle instead, `(1 − ε)·Lᵢ + ε·λ`, excuses
     /// exactly the particles that are wrong and removes the pull back to the truth.
+    ///
+    /// With a jump probability η, a detection the test above takes for an outlier is next
+    /// weighed as another member of its transmitter's unresolved cluster — the same direction,
+    /// the clock offset stepped by N(0, σ_j²): `η·Σᵢ wᵢ·Lᵢʲ > ε·λ`, with `Lᵢʲ` each particle's
+    /// likelihood under the widened clock offset, makes it a jump, which weighs every particle
+    /// by `Lᵢʲ` and keeps each transmitter as updated under the jump.
+    ///
+    /// Returns the outliers and, per jump, the true track's jumped transmitter when it has one.
     fn weigh_detections(
         &mut self,
         detections: Vec<Vec<Detection>>,
         w_before: &[f64],
-    ) -> BTreeSet<u64> {
+        meas: &[(u64, Meas, u32)],
+    ) -> (BTreeSet<u64>, BTreeSet<u64>) {
         let eps = self.cfg.outlier_probability;
         let ln_outlier = (eps * self.cfg.outlier_density).ln() - (1.0 - eps).ln();
-        let mut predictive: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
-        for (&w, ds) in w_before.iter().zip(&detections) {
-            if w > 0.0 {
-                for (track, ll, _) in ds {
-                    predictive.entry(*track).or_default().push(w.ln() + ll);
-                }
+        let mut outliers = decide(w_before, &detections, |ln_p| ln_outlier > ln_p);
+        let eta = self.cfg.jump_probability;
+        let mut jumped: Vec<Vec<Detection>> = vec![Vec::new(); detections.len()];
+        let mut jumps = BTreeSet::new();
+        if eta > 0.0 && !outliers.is_empty() {
+            let cfg = &self.cfg;
+            jumped = self
+                .particles
+                .par_iter()
+                .zip(&detections)
+                .map(|(p, ds)| {
+                    ds.iter()
+                        .filter(|d| outliers.contains(&d.0))
+                        .filter_map(|(track, _, saved)| {
+                            let (_, m, _) = meas.iter().find(|x| x.0 == *track)?;
+                            let (ll, tx) = p.jump_update(saved, m, cfg);
+                            Some((*track, ll, tx))
+                        })
+                        .collect()
+                })
+                .collect();
+            let ln_jump = (eps * self.cfg.outlier_density).ln() - eta.ln();
+            jumps = decide(w_before, &jumped, |ln_p| ln_jump < ln_p);
+            outliers.retain(|t| !jumps.contains(t));
+            for js in &mut jumped {
+                js.retain(|j| jumps.contains(&j.0));
             }
         }
-        let outliers: BTreeSet<u64> = predictive
-            .into_iter()
-            .filter(|(_, v)| ln_outlier > log_sum_exp(v.iter().copied()))
-            .map(|(track, _)| track)
-            .collect();
         self.particles
             .par_iter_mut()
             .zip(detections)
-            .for_each(|(p, ds)| p.settle(ds, &outliers));
+            .zip(jumped)
+            .for_each(|((p, ds), js)| p.settle(ds, &outliers, js));
         self.outliers += outliers.len();
-        outliers
+        self.jumps += jumps.len();
+        (outliers, jumps)
     }
 
     /// Visibility bookkeeping along the mean track: an identity is "seen" when the track the
@@ -574,4 +608,27 @@ impl Filter {
             .collect();
         old.into_par_iter().for_each(drop);
     }
+}
+
+/// The tracks whose population predictive log likelihood `ln Σᵢ wᵢ·Lᵢ` (over the particles
+/// that hold the track, `wᵢ` the weights before the snapshot) satisfies `test`; `per_particle`
+/// holds each particle's detections with their log likelihoods `ln Lᵢ`.
+fn decide(
+    w_before: &[f64],
+    per_particle: &[Vec<Detection>],
+    test: impl Fn(f64) -> bool,
+) -> BTreeSet<u64> {
+    let mut predictive: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
+    for (&w, ds) in w_before.iter().zip(per_particle) {
+        if w > 0.0 {
+            for (track, ll, _) in ds {
+                predictive.entry(*track).or_default().push(w.ln() + ll);
+            }
+        }
+    }
+    predictive
+        .into_iter()
+        .filter(|(_, v)| test(log_sum_exp(v.iter().copied())))
+        .map(|(track, _)| track)
+        .collect()
 }

@@ -14,10 +14,12 @@
 //! - the **normalized innovation squared** of the detections of the transmitters the true
 //!   track has mapped, per measurement dimension: about 1 when the model fits the data.
 
+use super::config::FilterConfig;
 use super::model::{Pose, mixture_moments};
 use super::particle::Particle;
 use super::rbpf::{Detection, StepInput};
 use super::srckf::SqrtGaussian;
+use super::update::Meas;
 use rand_chacha::ChaCha8Rng;
 use std::collections::BTreeSet;
 
@@ -94,15 +96,28 @@ impl TruthTrack {
     }
 
     /// Applies the population's gross-error decision to the true track's waiting detections
-    /// (an outlier is restored, the others weigh) and books the snapshot against the
+    /// (an outlier is restored, a jump within a cluster updates under the jump, the others
+    /// weigh) and books the snapshot against the
     /// particles' evidence `population_ll`.
     pub(super) fn settle(
         &mut self,
         detections: Vec<Detection>,
         outliers: &BTreeSet<u64>,
+        jumps: &BTreeSet<u64>,
+        meas: &[(u64, Meas, u32)],
+        cfg: &FilterConfig,
         population_ll: f64,
     ) -> f64 {
-        self.particle.settle(detections, outliers);
+        let jumped = detections
+            .iter()
+            .filter(|d| jumps.contains(&d.0))
+            .filter_map(|(track, _, saved)| {
+                let (_, m, _) = meas.iter().find(|x| x.0 == *track)?;
+                let (ll, tx) = self.particle.jump_update(saved, m, cfg);
+                Some((*track, ll, tx))
+            })
+            .collect();
+        self.particle.settle(detections, outliers, jumped);
         let ratio = self.particle.log_w - population_ll;
         self.log_bayes_factor += ratio;
         ratio

@@ -141,9 +141,11 @@ impl Scenario {
                 floor: PROFILE_FLOOR_MARGIN * e.aoa_floor_rad,
                 at_0db: round_up_2_digits(crlb_a),
             }),
-            // the simulated estimator's errors are the noise laws alone, Gaussian
+            // the simulated estimator's errors are the noise laws alone, Gaussian, and each
+            // track follows one virtual transmitter
             outlier_probability: Some(0.0),
             noise_dof: Some(0.0),
+            jump_probability: Some(0.0),
             // the gyroscope's bias as configured (a data sheet's bound); no measured speed
             odometry: Some(OdometryNoise {
                 gyro_bias_rad_per_s: Some(self.gyro.bias_rad_s.abs()),
