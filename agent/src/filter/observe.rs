@@ -4,12 +4,10 @@
 
 use super::config::FilterConfig;
 use super::model::Pose;
-use super::particle::Particle;
-use super::particle::TxState;
+use super::particle::{Particle, TxState};
 use super::rbpf::{Detection, StepInput};
 use super::srckf::SqrtGaussian;
-use super::update::Meas;
-use super::update::update_mixture;
+use super::update::{Meas, update_mixture};
 use rand_chacha::ChaCha8Rng;
 use std::collections::BTreeSet;
 use std::sync::Arc;

@@ -496,7 +496,7 @@ impl Filter {
     /// likelihood under the widened clock offset, makes it a jump, which weighs every particle
     /// by `Lᵢʲ` and keeps each transmitter as updated under the jump.
     ///
-    /// Returns the outliers and, per jump, the true track's jumped transmitter when it has one.
+    /// Returns the tracks decided to be outliers and those decided to be jumps.
     fn weigh_detections(
         &mut self,
         detections: Vec<Vec<Detection>>,
