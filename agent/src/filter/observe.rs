@@ -86,7 +86,7 @@ impl Particle {
     /// the transmitter as it was before the detection (`saved`), every component's clock
     /// offset widened by a step of `cfg.jump_std_m`, then updated by the detection. Returns
     /// the detection's log likelihood under that hypothesis and the transmitter after it.
-    pub(super) fn jump_update(
+    fn jump_update(
         &self,
         saved: &Arc<TxState>,
         m: &Meas,
@@ -107,6 +107,26 @@ impl Particle {
         });
         let ll = update_mixture(&mut tx.comps, m, &self.pose, cfg, false);
         (ll, Arc::new(tx))
+    }
+
+    /// [`Self::jump_update`] of each of this particle's waiting `detections` whose track is in
+    /// `tracks`, as (track, log likelihood, transmitter after the jump).
+    pub(super) fn jump_updates(
+        &self,
+        detections: &[Detection],
+        tracks: &BTreeSet<u64>,
+        meas: &[(u64, Meas, u32)],
+        cfg: &FilterConfig,
+    ) -> Vec<Detection> {
+        detections
+            .iter()
+            .filter(|d| tracks.contains(&d.0))
+            .filter_map(|(track, _, saved)| {
+                let (_, m, _) = meas.iter().find(|x| x.0 == *track)?;
+                let (ll, tx) = self.jump_update(saved, m, cfg);
+                Some((*track, ll, tx))
+            })
+            .collect()
     }
 
     /// Applies the population's decision to this particle's waiting detections (`observe`):

@@ -515,16 +515,7 @@ impl Filter {
                 .particles
                 .par_iter()
                 .zip(&detections)
-                .map(|(p, ds)| {
-                    ds.iter()
-                        .filter(|d| outliers.contains(&d.0))
-                        .filter_map(|(track, _, saved)| {
-                            let (_, m, _) = meas.iter().find(|x| x.0 == *track)?;
-                            let (ll, tx) = p.jump_update(saved, m, cfg);
-                            Some((*track, ll, tx))
-                        })
-                        .collect()
-                })
+                .map(|(p, ds)| p.jump_updates(ds, &outliers, meas, cfg))
                 .collect();
             let ln_jump = (eps * self.cfg.outlier_density).ln() - eta.ln();
             jumps = decide(w_before, &jumped, |ln_p| ln_jump < ln_p);

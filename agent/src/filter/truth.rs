@@ -97,8 +97,7 @@ impl TruthTrack {
 
     /// Applies the population's gross-error decision to the true track's waiting detections
     /// (an outlier is restored, a jump within a cluster updates under the jump, the others
-    /// weigh) and books the snapshot against the
-    /// particles' evidence `population_ll`.
+    /// weigh) and books the snapshot against the particles' evidence `population_ll`.
     pub(super) fn settle(
         &mut self,
         detections: Vec<Detection>,
@@ -108,15 +107,7 @@ impl TruthTrack {
         cfg: &FilterConfig,
         population_ll: f64,
     ) -> f64 {
-        let jumped = detections
-            .iter()
-            .filter(|d| jumps.contains(&d.0))
-            .filter_map(|(track, _, saved)| {
-                let (_, m, _) = meas.iter().find(|x| x.0 == *track)?;
-                let (ll, tx) = self.particle.jump_update(saved, m, cfg);
-                Some((*track, ll, tx))
-            })
-            .collect();
+        let jumped = self.particle.jump_updates(&detections, jumps, meas, cfg);
         self.particle.settle(detections, outliers, jumped);
         let ratio = self.particle.log_w - population_ll;
         self.log_bayes_factor += ratio;
