@@ -104,6 +104,9 @@ pub struct MeasurementConfig {
     pub jump_probability: f64,
     /// standard deviation of such a step of the clock offset (m)
     pub jump_std_m: f64,
+    /// a track whose detections are gross errors k times in a row (εᵏ < 10⁻³) is taken to
+    /// follow another path and starts again as a new track (needs `outlier_probability` > 0)
+    pub switch_tracks: bool,
 }
 
 /// Data association of new tracks (Gentner et al. 2016 §5; Ulmschneider et al. 2021 eq. 19).
@@ -193,6 +196,7 @@ impl Default for RunConfig {
                 noise_dof: 0.0,
                 jump_probability: f.jump_probability,
                 jump_std_m: f.jump_std_m,
+                switch_tracks: f.switch_tracks,
             },
             association: AssociationConfig {
                 method: f.association,
@@ -463,6 +467,7 @@ impl RunConfig {
             noise_dof: x.noise_dof,
             jump_probability: x.jump_probability,
             jump_std_m: x.jump_std_m,
+            switch_tracks: x.switch_tracks,
             noise: NoiseModel {
                 distance_floor_m: x.distance_floor_m,
                 distance_at_0db_m: x.distance_at_0db_m,

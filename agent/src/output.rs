@@ -44,6 +44,9 @@ pub struct RunSummary {
     /// detections of bound tracks decided to be jumps within an unresolved cluster
     /// (`measurement.jump_probability`)
     pub jump_detections: usize,
+    /// tracks found to follow another path than their transmitter after a run of gross
+    /// errors, and started again as new tracks
+    pub track_switches: usize,
     /// the true track run through the filter's model (`filter::truth`): Σ_t ln p(z_t | true
     /// track) − ln p(z_t | particles). Positive: the data favour the truth and the filter lost
     /// it (an estimator failure); negative: the data favour the filter's wrong track (the
@@ -112,6 +115,7 @@ pub fn summarize(out: &RunOutput, truth: &GroundTruth, log: &MeasurementLog) -> 
         coverage95: coverage95(&out.rows),
         outlier_detections: out.filter.outlier_detections(),
         jump_detections: out.filter.jump_detections(),
+        track_switches: out.filter.track_switches(),
         truth_log_bayes_factor: out.filter.truth_summary().map(|t| t.log_bayes_factor),
         truth_nis_per_dim: out.filter.truth_summary().and_then(|t| t.nis_per_dim),
         prior_matched_at_s: out.matches.iter().find(|m| m.accepted).map(|m| m.t),

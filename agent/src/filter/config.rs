@@ -181,6 +181,8 @@ pub struct FilterConfig {
     pub jump_probability: f64,
     /// standard deviation of the clock offset's step when it does (m)
     pub jump_std_m: f64,
+    /// a run of gross errors makes a track a switch to another path (`Filter::switch_tracks`)
+    pub switch_tracks: bool,
     /// degrees of freedom ν of a Student-t error law whose scale is the noise law (heavy
     /// tails: errors of many σ are rare but not impossible); 0 = Gaussian
     pub noise_dof: f64,
@@ -267,6 +269,7 @@ impl Default for FilterConfig {
             outlier_density: 1.0 / (10.0 * std::f64::consts::TAU),
             jump_probability: 0.0,
             jump_std_m: 1.5,
+            switch_tracks: false,
             noise_dof: 0.0,
             association_max_spread_m: 3.0,
             prior_min_existence: 0.5,

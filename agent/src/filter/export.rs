@@ -70,7 +70,20 @@ pub fn transmitter_id(track: u64) -> String {
     format!("t{track}")
 }
 
-/// The track an exported transmitter id names (inverse of [`transmitter_id`]).
+/// The id of the exported transmitter of identity `id`: [`transmitter_id`] of its track while
+/// the track is bound to it, `t<track>.<identity>` for one a track left after a switch to
+/// another path (`Filter::switch_tracks`), which no track names any more.
+fn identity_id(filter: &Filter, id: usize) -> String {
+    let track = filter.identities()[id].track;
+    if filter.track_identity.get(&track) == Some(&(id as u32)) {
+        transmitter_id(track)
+    } else {
+        format!("t{track}.{id}")
+    }
+}
+
+/// The track an exported transmitter id names (inverse of [`transmitter_id`]; None for the
+/// transmitter a track left behind).
 pub fn track_of(id: &str) -> Option<u64> {
     id.strip_prefix('t').and_then(|k| k.parse().ok())
 }
@@ -130,7 +143,7 @@ pub fn export_map(filter: &Filter) -> Result<TransmitterMap, MapError> {
             c.cov = spd(&c.cov);
         }
         transmitters.push(Transmitter {
-            id: transmitter_id(filter.identities()[id].track),
+            id: identity_id(filter, id),
             components: comps,
             existence: existence.clamp(0.0, 1.0),
             reliability_m: reliability.max(0.0),

@@ -67,6 +67,10 @@ pub struct Filter {
     pub(super) outliers: usize,
     /// detections of bound tracks decided to be jumps within an unresolved cluster so far
     pub(super) jumps: usize,
+    /// per track, its latest detections decided to be gross errors in a row
+    pub(super) gross_runs: BTreeMap<u64, usize>,
+    /// tracks found to follow another path than the transmitter they were bound to so far
+    pub(super) switches: usize,
     /// the true track run through the same model, when the true poses are given
     pub(super) truth: Option<TruthTrack>,
     /// map segments opened so far (`super::gauge`)
@@ -171,6 +175,8 @@ impl Filter {
             prior: None,
             outliers: 0,
             jumps: 0,
+            gross_runs: BTreeMap::new(),
+            switches: 0,
             truth: None,
             segments: 0,
             segment: 0,
@@ -226,6 +232,12 @@ impl Filter {
     /// Detections of bound tracks decided to be jumps within an unresolved cluster so far.
     pub fn jump_detections(&self) -> usize {
         self.jumps
+    }
+
+    /// Tracks found so far to follow another path than the transmitter they were bound to
+    /// (`Filter::switch_tracks`).
+    pub fn track_switches(&self) -> usize {
+        self.switches
     }
 
     /// ln p(z₁..z_t) so far (see `StepStats::log_evidence`).
@@ -426,6 +438,9 @@ impl Filter {
             }
             _ => None,
         };
+        if robust {
+            self.switch_tracks(&meas, &outliers);
+        }
         let w = self.weights_given(after);
         let ess = 1.0 / w.iter().map(|x| x * x).sum::<f64>();
         let (mut mx, mut my) = (0.0, 0.0);
@@ -534,6 +549,56 @@ impl Filter {
         (outliers, jumps)
     }
 
+    /// A track whose detections the population keeps deciding to be gross errors follows
+    /// another path than the transmitter it is bound to: a tracker that continued one path
+    /// into another (a weak path near a blocked line of sight going on as the line of sight,
+    /// members of a cluster closer than the resolution), or a transmitter born from a few
+    /// detections of one path and fed the other's since. Rejecting each of them leaves the
+    /// transmitter where the wrong path put it and the track's information unused; weighing
+    /// them would drag the user's pose to the wrong transmitter. Under the model's own
+    /// gross-error law a path yields `k` in a row with probability `εᵏ`; once that falls
+    /// below [`SWITCH_FALSE_ALARM`] the track is unbound in every particle (and the true
+    /// track) and gets a new identity: its next detection is a new track's, associated with
+    /// an old transmitter — the one it left, where the run of errors was chance — or born
+    /// from the path it follows now. The transmitter it leaves stays in the map, unbound.
+    fn switch_tracks(&mut self, meas: &[(u64, Meas, u32)], outliers: &BTreeSet<u64>) {
+        let eps = self.cfg.outlier_probability;
+        if !self.cfg.switch_tracks || !(eps > 0.0 && eps < 1.0) {
+            return;
+        }
+        let after = (SWITCH_FALSE_ALARM.ln() / eps.ln()).ceil().max(1.0) as usize;
+        let mut switched = BTreeSet::new();
+        for (track, _, _) in meas {
+            if outliers.contains(track) {
+                let run = self.gross_runs.entry(*track).or_insert(0);
+                *run += 1;
+                if *run >= after {
+                    switched.insert(*track);
+                }
+            } else {
+                self.gross_runs.remove(track);
+            }
+        }
+        for track in &switched {
+            self.gross_runs.remove(track);
+            let id = self.identities.len() as u32;
+            self.identities.push(Identity {
+                track: *track,
+                segment: self.segment,
+            });
+            self.track_identity.insert(*track, id);
+        }
+        if switched.is_empty() {
+            return;
+        }
+        self.switches += switched.len();
+        let unbind = |p: &mut Particle| p.bound.retain(|(t, _)| !switched.contains(t));
+        self.particles.par_iter_mut().for_each(unbind);
+        if let Some(tt) = self.truth.as_mut() {
+            unbind(&mut tt.particle);
+        }
+    }
+
     /// Visibility bookkeeping along the mean track: an identity is "seen" when the track the
     /// majority of the weight binds to it is detected.
     pub(super) fn update_visibility(
@@ -600,6 +665,12 @@ impl Filter {
         old.into_par_iter().for_each(drop);
     }
 }
+
+/// The probability, under the gross-error law, of the run of gross errors after which a
+/// track is taken to follow another path (`Filter::switch_tracks`): one track in a thousand
+/// of those that hit such a run is switched by chance, and the association then binds it
+/// back to the transmitter it left.
+pub const SWITCH_FALSE_ALARM: f64 = 1e-3;
 
 /// The tracks whose population predictive log likelihood `ln Σᵢ wᵢ·Lᵢ` (over the particles
 /// that hold the track, `wᵢ` the weights before the snapshot) satisfies `test`; `per_particle`
