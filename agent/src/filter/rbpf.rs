@@ -563,7 +563,7 @@ impl Filter {
     /// from the path it follows now. The transmitter it leaves stays in the map, unbound.
     fn switch_tracks(&mut self, meas: &[(u64, Meas, u32)], outliers: &BTreeSet<u64>) {
         let eps = self.cfg.outlier_probability;
-        if !self.cfg.switch_tracks || !(eps > 0.0 && eps < 1.0) {
+        if !(self.cfg.switch_tracks && eps > 0.0 && eps < 1.0) {
             return;
         }
         let after = (SWITCH_FALSE_ALARM.ln() / eps.ln()).ceil().max(1.0) as usize;
