@@ -40,6 +40,9 @@ pub struct RunConfig {
     /// independent filters the particles are split into; the run reports their equally
     /// weighted mixture, whose spread includes the scatter between them (1 = one filter)
     pub islands: usize,
+    /// most Gaussian components per transmitter and particle (merged by Runnalls' rule
+    /// above it): a compute budget, each component costs one cubature update per detection
+    pub max_components: usize,
     pub motion: MotionConfig,
     pub measurement: MeasurementConfig,
     pub association: AssociationConfig,
@@ -162,6 +165,9 @@ pub struct PriorConfig {
     pub use_in_filter: bool,
 }
 
+/// The largest `max_components` a run accepts (a new transmitter starts with at most 24).
+pub const MAX_COMPONENTS_LIMIT: usize = 64;
+
 /// The outlier probability of a sensor that does not state one: real channel estimators
 /// swap paths and misread identities now and then.
 pub const DEFAULT_OUTLIER_PROBABILITY: f64 = 0.05;
@@ -173,6 +179,7 @@ impl Default for RunConfig {
         RunConfig {
             particles: f.particles,
             islands: f.islands,
+            max_components: f.max_components,
             motion: MotionConfig {
                 heading_noise_rad_per_sqrt_s: f.heading_noise_rad_per_sqrt_s,
                 heading_noise_rad_per_sqrt_rad: f.heading_noise_rad_per_sqrt_rad,
@@ -327,6 +334,12 @@ impl RunConfig {
                 format!("must be between 1 and the particles ({})", self.particles),
             );
         }
+        if !(1..=MAX_COMPONENTS_LIMIT).contains(&self.max_components) {
+            return bad(
+                "max_components",
+                format!("must be between 1 and {MAX_COMPONENTS_LIMIT}"),
+            );
+        }
         let m = &self.motion;
         let x = &self.measurement;
         let a = &self.association;
@@ -445,6 +458,7 @@ impl RunConfig {
         FilterConfig {
             particles: self.particles,
             islands: self.islands,
+            max_components: self.max_components,
             seed,
             association: a.method,
             b_prior,
@@ -981,6 +995,13 @@ mod tests {
         );
         assert!(r.sources.values().all(|s| *s == Source::Default));
         assert!(r.sources.contains_key("prior.match_score"));
+        // a key given reaches the filter
+        let r = resolve(&Layers {
+            flags: flags(&["max_components=3"]),
+            ..Default::default()
+        })
+        .unwrap();
+        assert_eq!(r.config.filter_config(1, 0.0).max_components, 3);
     }
 
     #[test]
@@ -1088,6 +1109,13 @@ mod tests {
         for bad in ["islands=0", "islands=2000"] {
             let e = err(&[bad, "particles=1000"]);
             assert!(e.contains("islands") && e.contains("between 1 and"), "{e}");
+        }
+        for bad in ["max_components=0", "max_components=65"] {
+            let e = err(&[bad]);
+            assert!(
+                e.contains("max_components") && e.contains("between 1 and"),
+                "{e}"
+            );
         }
         let e = err(&["prior.match_every_s=0"]);
         assert!(e.contains("prior.match_every_s"), "{e}");

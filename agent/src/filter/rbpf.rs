@@ -298,11 +298,17 @@ impl Filter {
     }
 
     pub(super) fn particle_rng(&self, i: usize) -> ChaCha8Rng {
-        let mut r = ChaCha8Rng::seed_from_u64(
-            self.cfg.seed ^ (self.step as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
-        );
+        let mut r = self.step_rng();
         r.set_stream(i as u64);
         r
+    }
+
+    /// The step's generator before a stream is chosen: [`Self::particle_rng`] is it on
+    /// stream `i`.
+    fn step_rng(&self) -> ChaCha8Rng {
+        ChaCha8Rng::seed_from_u64(
+            self.cfg.seed ^ (self.step as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        )
     }
 
     /// Ends the log: every association still open is decided on the detections it has
@@ -386,9 +392,6 @@ impl Filter {
         // the weights' total before the detections: 1 unless something reweighted them since
         // the last snapshot, which is then not counted as evidence
         let before = log_sum_exp(self.particles.iter().map(|p| p.log_w));
-        let rngs: Vec<ChaCha8Rng> = (0..self.particles.len())
-            .map(|i| self.particle_rng(i))
-            .collect();
         // with an outlier probability, bound tracks' detections weight the particles only
         // once the population has decided they are no gross errors
         let robust = self.cfg.outlier_probability > 0.0;
@@ -410,11 +413,17 @@ impl Filter {
             merge_now,
             robust,
         };
+        // each particle's stream of the step's generator, set up on the workers
+        let step_rng = self.step_rng();
         let detections: Vec<Vec<Detection>> = self
             .particles
             .par_iter_mut()
-            .zip(rngs)
-            .map(|(p, mut rng)| p.observe(&input, &mut rng, None))
+            .enumerate()
+            .map(|(i, p)| {
+                let mut rng = step_rng.clone();
+                rng.set_stream(i as u64);
+                p.observe(&input, &mut rng, None)
+            })
             .collect();
         // the true track, when known, sees the snapshot as every particle does (its own
         // stream after the particles' ones), from the true pose
@@ -457,11 +466,16 @@ impl Filter {
             .zip(&w)
             .map(|(p, w)| w * p.txs.len() as f64)
             .sum();
-        let ncomp = self
+        // counted on the workers (one load per transmitter), summed here in particle order
+        let counts: Vec<usize> = self
             .particles
+            .par_iter()
+            .map(|p| p.txs.iter().map(|t| t.comps.len()).sum())
+            .collect();
+        let ncomp = counts
             .iter()
             .zip(&w)
-            .map(|(p, w)| w * p.txs.iter().map(|t| t.comps.len()).sum::<usize>() as f64)
+            .map(|(n, w)| w * *n as f64)
             .sum::<f64>();
         // A motion-only snapshot (no channel estimate) is no evidence of (in)visibility:
         // counting it as "not seen" would make a sensor slower than the snapshot rate (the
@@ -607,12 +621,23 @@ impl Filter {
         mean: &Point2<f64>,
         current: &BTreeSet<u64>,
     ) {
+        // each particle's (track, identity) pairs read on the workers (one load per bound
+        // transmitter), the votes added here in particle order
+        let pairs: Vec<Vec<(u64, u32)>> = self
+            .particles
+            .par_iter()
+            .map(|p| {
+                p.bound
+                    .iter()
+                    .filter(|(t, _)| current.contains(t))
+                    .map(|(t, idx)| (*t, p.txs[*idx as usize].identity))
+                    .collect()
+            })
+            .collect();
         let mut votes: BTreeMap<(u64, u32), f64> = BTreeMap::new();
-        for (p, w) in self.particles.iter().zip(w) {
-            for (t, idx) in p.bound.iter().filter(|(t, _)| current.contains(t)) {
-                *votes
-                    .entry((*t, p.txs[*idx as usize].identity))
-                    .or_insert(0.0) += w;
+        for (ps, w) in pairs.iter().zip(w) {
+            for key in ps {
+                *votes.entry(*key).or_insert(0.0) += w;
             }
         }
         let mut best: BTreeMap<u64, (u32, f64)> = BTreeMap::new();
