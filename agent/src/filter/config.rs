@@ -164,10 +164,10 @@ pub struct FilterConfig {
     pub prune_weight: f64,
     /// most components per transmitter and particle (reduced by Runnalls merging). A
     /// compute budget, not a model parameter: every component costs one cubature update per
-    /// detection; on the built-in urban and indoor tracks 8 estimates within the run-to-run
-    /// spread of 12 at 0.7× the time, while 6 already merges a young transmitter's ray into
-    /// Gaussians too wide for the cubature update (docs/results/benchmarks.md, "Fewer
-    /// components per transmitter")
+    /// detection; 8 takes 0.72× the time of 12 on the built-in urban track and estimates
+    /// within its run-to-run spread by the medians but a little worse in most runs, 6 merges
+    /// a young transmitter's ray into Gaussians too wide for the cubature update
+    /// (docs/results/benchmarks.md, "Fewer components per transmitter")
     pub max_components: usize,
     /// resample when ESS < ratio × particles
     pub resample_ess_ratio: f64,
@@ -264,7 +264,7 @@ impl Default for FilterConfig {
             init_spacing_m: 2.0,
             init_max_components: 24,
             prune_weight: 1e-3,
-            max_components: 8,
+            max_components: 12,
             resample_ess_ratio: 0.5,
             association_p0: 0.02,
             association_gate: 11.8,
