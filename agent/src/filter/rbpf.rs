@@ -621,24 +621,22 @@ impl Filter {
         mean: &Point2<f64>,
         current: &BTreeSet<u64>,
     ) {
-        // each particle's (track, identity) pairs read on the workers (one load per bound
-        // transmitter), the votes added here in particle order
-        let pairs: Vec<Vec<(u64, u32)>> = self
+        // every particle's (particle, track, identity) read on the workers (one load per bound
+        // transmitter) into one vector in particle order, the votes added here in that order
+        let pairs: Vec<(usize, u64, u32)> = self
             .particles
             .par_iter()
-            .map(|p| {
+            .enumerate()
+            .flat_map_iter(|(i, p)| {
                 p.bound
                     .iter()
                     .filter(|(t, _)| current.contains(t))
-                    .map(|(t, idx)| (*t, p.txs[*idx as usize].identity))
-                    .collect()
+                    .map(move |(t, idx)| (i, *t, p.txs[*idx as usize].identity))
             })
             .collect();
         let mut votes: BTreeMap<(u64, u32), f64> = BTreeMap::new();
-        for (ps, w) in pairs.iter().zip(w) {
-            for key in ps {
-                *votes.entry(*key).or_insert(0.0) += w;
-            }
+        for (i, t, id) in pairs {
+            *votes.entry((t, id)).or_insert(0.0) += w[i];
         }
         let mut best: BTreeMap<u64, (u32, f64)> = BTreeMap::new();
         for ((t, id), v) in votes {
